@@ -1,0 +1,218 @@
+"""Learnable filter parameters: noise scales, initial covariance and Hall models.
+
+Every leaf is *unconstrained* (a log), so gradient descent can move it freely and the physical
+value ``exp(leaf)`` stays positive. A physical value of exactly zero (the paper has no angle or
+bias random walk) is stored as ``-inf``: its gradient is zero, so it stays off until a fit
+starts it from a positive floor (see ``Params.with_floors``).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from ._hall import DEG, PAPER_HALL_DEG
+from ._robot import Robot
+
+HALL_NOISE_MODELS = ("angle", "voltage")
+
+#: Paper defaults and the sources of the numbers that are not in the paper.
+PAPER_SIGMA_HALL_RAD = 3.2 * DEG  # Eq. 20, sigma_hall = 3.2 deg
+#: Eq. 13 gives Q up to a scale; as printed (in the paper's unit, degrees) the scale is 1,
+#: i.e. q = (1 deg/s^2)^2: the bias of each coordinate may wander ts * 1 deg/s per step.
+PAPER_Q_RAD2_S4 = DEG**2
+#: Initial uncertainty (not in the paper): joint angles are unknown within a joint's 60 deg
+#: range of motion; gyro differences start within about the LSM6DSO zero-rate level (+-1 dps
+#: per gyro, so about 1.4 dps for a difference).
+DEFAULT_P0_ANGLE_RAD = 30.0 * DEG
+DEFAULT_P0_BIAS_RAD_S = 1.5 * DEG
+#: Voltage noise of a Hall channel for the ``"voltage"`` noise model (mechanical play of the
+#: magnet against the sensor dominates the DRV5053's electrical noise; see docs/simulator.md).
+DEFAULT_SIGMA_HALL_V = 0.03
+
+
+def _log(x) -> np.ndarray:
+    with np.errstate(divide="ignore"):
+        return np.log(np.asarray(x, dtype=np.float64))
+
+
+class Params(eqx.Module):
+    """Learnable KCKF parameters for one robot layout (physical values via properties).
+
+    Leaves (all logs of positive physical values, float):
+
+    * ``log_q`` (K): the scale ``q`` of Eq. 13 per angle coordinate, in rad^2/s^4;
+    * ``log_angle_rw`` (K), ``log_bias_rw`` (K): extra angle random walk (rad/sqrt(s)) and bias
+      random walk (rad/s/sqrt(s)) added to Eq. 13 (zero in the paper);
+    * ``log_sigma_hall`` (M): Hall angle noise, rad (Eq. 20, ``"angle"`` noise model);
+    * ``log_sigma_hall_v`` (M): Hall voltage noise, V (``"voltage"`` noise model: the angle
+      noise is ``|d theta/dV| * sigma_V``, so a sensor on its saturated side counts less);
+    * ``log_p0_angle`` (K), ``log_p0_bias`` (K): initial standard deviations, rad and rad/s
+      (the torso angle's own entry is used by ``kf`` only: in the KCKF, ``phi = sum theta``);
+    * ``log_hall_a``, ``log_hall_b``, ``log_hall_c``, ``log_hall_d`` (M): Eq. 1 per sensor, rad.
+
+    Static: the ``robot``, each sensor's ``hall_sign`` and the ``hall_noise`` model.
+
+    Example:
+        >>> p = Params.paper_defaults(Robot.from_spec("x,y,x,y"))
+        >>> round(float(p.sigma_hall[0]) / DEG, 3)
+        3.2
+    """
+
+    log_q: Float[Array, " K"]
+    log_angle_rw: Float[Array, " K"]
+    log_bias_rw: Float[Array, " K"]
+    log_sigma_hall: Float[Array, " M"]
+    log_sigma_hall_v: Float[Array, " M"]
+    log_p0_angle: Float[Array, " K"]
+    log_p0_bias: Float[Array, " K"]
+    log_hall_a: Float[Array, " M"]
+    log_hall_b: Float[Array, " M"]
+    log_hall_c: Float[Array, " M"]
+    log_hall_d: Float[Array, " M"]
+    robot: Robot = eqx.field(static=True)
+    hall_sign: tuple[int, ...] = eqx.field(static=True)
+    hall_noise: str = eqx.field(static=True, default="angle")
+
+    def __check_init__(self):
+        K, M = self.robot.n_angles, self.robot.n_hall
+        sizes = {
+            "log_q": K, "log_angle_rw": K, "log_bias_rw": K, "log_p0_angle": K,
+            "log_p0_bias": K, "log_sigma_hall": M, "log_sigma_hall_v": M, "log_hall_a": M,
+            "log_hall_b": M, "log_hall_c": M, "log_hall_d": M,
+        }
+        for name, n in sizes.items():
+            shape = jnp.shape(getattr(self, name))
+            if shape != (n,):
+                raise ValueError(
+                    f"Params.{name}: expected shape ({n},) for robot {self.robot.spec!r}, "
+                    f"got {shape}"
+                )
+        if len(self.hall_sign) != M or any(s not in (1, -1) for s in self.hall_sign):
+            raise ValueError(
+                f"Params.hall_sign: expected {M} entries of +1/-1, got {self.hall_sign}")
+        if self.hall_noise not in HALL_NOISE_MODELS:
+            raise ValueError(
+                f"Params.hall_noise: expected one of {HALL_NOISE_MODELS}, got {self.hall_noise!r}"
+            )
+
+    # ------------------------------------------------------------------ physical values
+    q = property(lambda self: jnp.exp(self.log_q))
+    angle_rw = property(lambda self: jnp.exp(self.log_angle_rw))
+    bias_rw = property(lambda self: jnp.exp(self.log_bias_rw))
+    sigma_hall = property(lambda self: jnp.exp(self.log_sigma_hall))
+    sigma_hall_v = property(lambda self: jnp.exp(self.log_sigma_hall_v))
+    p0_angle = property(lambda self: jnp.exp(self.log_p0_angle))
+    p0_bias = property(lambda self: jnp.exp(self.log_p0_bias))
+
+    @property
+    def hall_coeffs(self) -> tuple[Array, Array, Array, Array, Array]:
+        """``(a, b, c, d, sign)`` per sensor, rad (for ``hall_angle``)."""
+        sign = jnp.asarray(self.hall_sign, dtype=self.log_hall_a.dtype)
+        return (jnp.exp(self.log_hall_a), jnp.exp(self.log_hall_b), jnp.exp(self.log_hall_c),
+                jnp.exp(self.log_hall_d), sign)
+
+    # ------------------------------------------------------------------ constructors
+    @classmethod
+    def from_physical(
+        cls,
+        robot: Robot,
+        *,
+        q: float | np.ndarray = PAPER_Q_RAD2_S4,
+        angle_rw: float | np.ndarray = 0.0,
+        bias_rw: float | np.ndarray = 0.0,
+        sigma_hall: float | np.ndarray = PAPER_SIGMA_HALL_RAD,
+        sigma_hall_v: float | np.ndarray = DEFAULT_SIGMA_HALL_V,
+        p0_angle: float | np.ndarray = DEFAULT_P0_ANGLE_RAD,
+        p0_bias: float | np.ndarray = DEFAULT_P0_BIAS_RAD_S,
+        hall_models: Mapping[str, Mapping] | None = None,
+        hall_noise: str = "angle",
+        dtype=None,
+    ) -> Params:
+        """Build from physical values (scalars broadcast; arrays per coordinate or sensor).
+
+        ``hall_models`` maps sensor column names to ``{"a", "b", "c", "d", "sign", "unit"}``
+        as in ``meta.json``; a sensor without an entry gets the paper's Eq. 1 with sign +1 for
+        ``l`` and -1 for ``r``.
+        """
+        K, M = robot.n_angles, robot.n_hall
+        a, b, c, d, sign = hall_arrays(robot, hall_models)
+
+        def vec(x, n, name):
+            arr = np.broadcast_to(np.asarray(x, dtype=np.float64), (n,)) if np.ndim(x) == 0 else (
+                np.asarray(x, dtype=np.float64))
+            if arr.shape != (n,):
+                raise ValueError(f"Params.from_physical: {name} must be a scalar or have shape "
+                                 f"({n},), got {arr.shape}")
+            if np.any(arr < 0) or not np.all(np.isfinite(arr)):
+                raise ValueError(f"Params.from_physical: {name} must be finite and >= 0, got {arr}")
+            return _log(arr)
+
+        dt = dtype or jnp.asarray(0.0).dtype
+        leaves = dict(
+            log_q=vec(q, K, "q"), log_angle_rw=vec(angle_rw, K, "angle_rw"),
+            log_bias_rw=vec(bias_rw, K, "bias_rw"),
+            log_sigma_hall=vec(sigma_hall, M, "sigma_hall"),
+            log_sigma_hall_v=vec(sigma_hall_v, M, "sigma_hall_v"),
+            log_p0_angle=vec(p0_angle, K, "p0_angle"), log_p0_bias=vec(p0_bias, K, "p0_bias"),
+            log_hall_a=_log(a), log_hall_b=_log(b), log_hall_c=_log(c), log_hall_d=_log(d),
+        )
+        leaves = {k: jnp.asarray(v, dtype=dt) for k, v in leaves.items()}
+        return cls(**leaves, robot=robot, hall_sign=tuple(int(s) for s in sign),
+                   hall_noise=hall_noise)
+
+    @classmethod
+    def paper_defaults(cls, robot: Robot, hall_models: Mapping[str, Mapping] | None = None,
+                       dtype=None) -> Params:
+        """The paper's filter: Eq. 13 Q (scale 1 deg^2/s^4), sigma_hall = 3.2 deg (Eq. 20)."""
+        return cls.from_physical(robot, hall_models=hall_models, dtype=dtype)
+
+    def astype(self, dtype) -> Params:
+        """The same parameters with every leaf cast to ``dtype``."""
+        return eqx.tree_at(
+            lambda p: [getattr(p, f) for f in _LEAVES], self,
+            [jnp.asarray(getattr(self, f), dtype=dtype) for f in _LEAVES],
+        )
+
+
+_LEAVES = ("log_q", "log_angle_rw", "log_bias_rw", "log_sigma_hall", "log_sigma_hall_v",
+           "log_p0_angle", "log_p0_bias", "log_hall_a", "log_hall_b", "log_hall_c", "log_hall_d")
+
+
+def hall_arrays(robot: Robot, hall_models: Mapping[str, Mapping] | None = None):
+    """Per-sensor ``(a, b, c, d, sign)`` arrays in rad from ``meta.json``-style models."""
+    hall_models = dict(hall_models or {})
+    unknown = sorted(set(hall_models) - set(robot.hall_names))
+    if unknown:
+        raise ValueError(
+            f"hall_models: {unknown[0]!r} is not a Hall sensor of robot {robot.spec!r} "
+            f"(expected names like {robot.hall_names[0]!r})"
+        )
+    out = np.zeros((5, robot.n_hall))
+    for m, (name, default_sign) in enumerate(zip(robot.hall_names, robot.hall_side_sign)):
+        model = hall_models.get(name)
+        if model is None:
+            model = dict(PAPER_HALL_DEG, sign=default_sign, unit="deg")
+        unit = model.get("unit", "deg")
+        if unit not in ("deg", "rad"):
+            raise ValueError(f"hall_models[{name!r}].unit: expected 'deg' or 'rad', got {unit!r}")
+        scale = DEG if unit == "deg" else 1.0
+        vals = []
+        for key in ("a", "b", "c", "d"):
+            v = model.get(key)
+            number = isinstance(v, int | float) and not isinstance(v, bool)
+            if not number or not math.isfinite(v) or v <= 0:
+                raise ValueError(
+                    f"hall_models[{name!r}].{key}: expected a positive number, got {v!r}"
+                )
+            vals.append(float(v))
+        sign = model.get("sign", default_sign)
+        if sign not in (1, -1):
+            raise ValueError(f"hall_models[{name!r}].sign: expected 1 or -1, got {sign!r}")
+        out[:, m] = (vals[0] * scale, vals[1], vals[2] * scale, vals[3], sign)
+    return out[0], out[1], out[2], out[3], out[4]
