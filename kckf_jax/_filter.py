@@ -34,7 +34,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Bool, Float
+from jaxtyping import Array, ArrayLike, Bool, Float
 
 from ._hall import hall_angle, hall_slope
 from ._model import FILTER_METHODS, initial_covariance, predicted_moments, structure
@@ -51,9 +51,9 @@ class SensorSeries(eqx.Module):
     * ``hall_v``: (``M``) V, in ``Robot.hall_names`` order. NaN marks a missing reading.
     """
 
-    dt: Float[Array, "*T"]
-    gyro: Float[Array, "*T G"]
-    hall_v: Float[Array, "*T M"]
+    dt: Float[ArrayLike, "*T"]
+    gyro: Float[ArrayLike, "*T G"]
+    hall_v: Float[ArrayLike, "*T M"]
 
 
 class FilterState(eqx.Module):
@@ -65,7 +65,7 @@ class FilterState(eqx.Module):
     """
 
     z: Float[Array, " Nz"]
-    P: Float[Array, "Nz Nz"]
+    P: Float[Array, "Np Np"]  # Np = Nz for the Kalman filters, 0 for the baselines
     gyro_hold: Float[Array, " G"]
 
 

@@ -510,14 +510,14 @@ def _first_problem(values: np.ndarray, names: Sequence[str]) -> tuple[int, str] 
 # ---------------------------------------------------------------------- writing
 
 
-def write_session(session: Session, path: str | os.PathLike) -> None:
+def write_session(session: Session, path: str | os.PathLike, digits: int = 9) -> None:
     """Write ``session`` as a ``kckf-session/1`` folder (created if needed).
 
     Writes ``meta.json`` (indent 2), ``sensors.csv`` (``t``, all of ``robot.gyro_names``, then
     ``robot.hall_names``) and, when the session has mocap, ``mocap.csv`` (``t`` then
     ``robot.angle_names``); a stale ``mocap.csv`` in the folder is removed otherwise. Times are
-    written with full (round-trip) precision, other values with 9 significant digits; NaN is
-    an empty cell.
+    written with full (round-trip) precision, other values with ``digits`` significant digits
+    (default 9); NaN is an empty cell.
 
     Example:
         >>> write_session(session, "out/trial1")  # doctest: +SKIP
@@ -544,19 +544,24 @@ def write_session(session: Session, path: str | os.PathLike) -> None:
         ("t", *robot.gyro_names, *robot.hall_names),
         session.t,
         np.concatenate([session.gyro, session.hall_v], axis=1),
+        digits,
     )
     mocap_path = os.path.join(folder, MOCAP_FILE)
     if session.mocap is not None:
-        _write_csv(mocap_path, ("t", *robot.angle_names), session.mocap_t, session.mocap)
+        _write_csv(mocap_path, ("t", *robot.angle_names), session.mocap_t, session.mocap,
+                   digits)
     elif os.path.exists(mocap_path):
         os.remove(mocap_path)
 
 
-def _write_csv(file: str, header: Sequence[str], t: np.ndarray, values: np.ndarray) -> None:
+def _write_csv(file: str, header: Sequence[str], t: np.ndarray, values: np.ndarray,
+               digits: int = 9) -> None:
     # One %-format per row (formatting runs in C); "%r" of a Python float is the shortest
     # string that reads back as the same float64. Only NaN prints as "nan" here, and no
     # number contains "nan", so the replace turns exactly the NaN cells into empty ones.
-    fmt = ",".join(["%r"] + ["%.9g"] * values.shape[1])
+    if not 1 <= int(digits) <= 17:
+        raise ValueError(f"write_session: digits must be 1..17, got {digits}")
+    fmt = ",".join(["%r"] + [f"%.{int(digits)}g"] * values.shape[1])
     rows = np.column_stack([np.asarray(t, dtype=np.float64), values]).tolist()
     body = "\n".join([fmt % tuple(row) for row in rows]).replace("nan", "")
     with open(file, "w", encoding="utf-8", newline="") as f:

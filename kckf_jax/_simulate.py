@@ -206,7 +206,7 @@ def simulate(
     n = int(round(duration_s * cfg.sample_rate_hz))
     t = np.arange(n) * ts + rng.uniform(-cfg.timestamp_jitter_s, cfg.timestamp_jitter_s, n)
     t[0] = 0.0
-    t = np.maximum.accumulate(t)
+    t = np.round(np.maximum.accumulate(t), 6)  # the microcontroller stamps in microseconds
 
     # ---- joint motion (T, J): angles and rates, with a still start in the neutral pose.
     flex = None

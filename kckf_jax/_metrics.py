@@ -1,0 +1,64 @@
+"""Error figures against motion capture (session format, "Error figures")."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from ._robot import Robot
+from ._session import Session
+
+RAD2DEG = 180.0 / np.pi
+
+
+def squared_errors(estimate_angles: np.ndarray, truth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-angle sum of squared errors (rad^2) and count over the steps that have truth."""
+    err = np.asarray(estimate_angles, np.float64) - truth
+    ok = np.isfinite(err)
+    return (np.where(ok, err, 0.0) ** 2).sum(axis=0), ok.sum(axis=0)
+
+
+def estimated_names(robot: Robot, estimate_angles: np.ndarray) -> list[str]:
+    """The angles a method estimates (those not NaN everywhere), in ``angle_names`` order."""
+    finite = np.isfinite(np.asarray(estimate_angles)).any(axis=0)
+    return [n for n, f in zip(robot.angle_names, finite) if f]
+
+
+def rmse_table(
+    sessions: Sequence[Session], estimates: Sequence[np.ndarray], burn_in_s: float = 0.0
+) -> dict:
+    """RMSE (deg) per angle, pooled over ``sessions`` and per session.
+
+    Args:
+        sessions: sessions with motion capture.
+        estimates: the matching (T, K) estimated angles, rad (NaN where not estimated).
+        burn_in_s: leave out the first seconds of every session.
+
+    Returns:
+        ``{"rmse_deg": {name: x}, "mean_rmse_deg": x, "per_session": {key: {name: x}}}``:
+        the layout of ``kckf evaluate --json`` for one method. An angle the method does not
+        estimate is left out.
+    """
+    robot = sessions[0].robot
+    sse = np.zeros(robot.n_angles)
+    cnt = np.zeros(robot.n_angles)
+    per_session = {}
+    names = None
+    for i, (s, est) in enumerate(zip(sessions, estimates)):
+        truth = s.truth()
+        if burn_in_s > 0:
+            truth = np.where((s.t - s.t[0] < burn_in_s)[:, None], np.nan, truth)
+        e2, n = squared_errors(est, truth)
+        sse += e2
+        cnt += n
+        names = names or estimated_names(robot, est)
+        key = s.path or f"session{i + 1}"
+        per_session[key] = {
+            name: float(np.sqrt(e2[k] / n[k]) * RAD2DEG)
+            for k, name in enumerate(robot.angle_names) if name in names and n[k] > 0
+        }
+    rmse = {name: float(np.sqrt(sse[k] / cnt[k]) * RAD2DEG)
+            for k, name in enumerate(robot.angle_names) if name in names and cnt[k] > 0}
+    mean = float(np.mean(list(rmse.values()))) if rmse else float("nan")
+    return {"rmse_deg": rmse, "mean_rmse_deg": mean, "per_session": per_session}

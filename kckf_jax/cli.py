@@ -1,0 +1,342 @@
+"""The ``kckf`` command (contract: ``../shared/spec/cli.md``).
+
+Everything for machines goes to stdout as JSON; everything for people goes to stderr or files.
+Bad input ends with one line naming the file, column or value at fault, and exit status 2
+(``--debug`` shows the traceback).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from collections.abc import Sequence
+
+PAPER_TABLE_METHODS = ("gyro", "hall_l", "hall_r", "kf", "kckf")
+TABLE_LABELS = {"gyro": "Gyro", "hall_l": "Hall l", "hall_r": "Hall r", "kf": "Std KF",
+                "kckf": "KCKF"}
+
+
+class UsageError(ValueError):
+    """Bad input from the command line or a file: reported in one line, exit status 2."""
+
+
+# --------------------------------------------------------------------------- helpers
+def _say(args, *lines: str) -> None:
+    if not getattr(args, "quiet", False):
+        for line in lines:
+            print(line, file=sys.stderr)
+
+
+class Progress:
+    """A small progress bar on stderr, shown only on a terminal and without ``--quiet``."""
+
+    def __init__(self, total: int, label: str, quiet: bool = False):
+        self.total, self.label, self.n = max(total, 1), label, 0
+        self.on = not quiet and sys.stderr.isatty()
+        self.start = time.perf_counter()
+
+    def update(self, n: int = 1, info: str = "") -> None:
+        self.n += n
+        if self.on:
+            frac = min(self.n / self.total, 1.0)
+            bar = "#" * int(30 * frac)
+            el = time.perf_counter() - self.start
+            sys.stderr.write(f"\r{self.label} [{bar:<30}] {self.n}/{self.total} {el:5.1f}s {info}")
+            sys.stderr.flush()
+
+    def close(self) -> None:
+        if self.on:
+            sys.stderr.write("\n")
+
+
+def _read_sessions(paths: Sequence[str], require_mocap: bool = False):
+    from ._session import read_session
+
+    return [read_session(p, require_mocap=require_mocap) for p in paths]
+
+
+def _check_methods(methods: Sequence[str]) -> list[str]:
+    from ._filter import METHODS
+
+    for m in methods:
+        if m not in METHODS:
+            raise UsageError(f"--method {m!r}: expected one of {', '.join(METHODS)}")
+    return list(dict.fromkeys(methods))
+
+
+def format_table(results: dict, robot, methods: Sequence[str], title: str = "") -> str:
+    """The paper's Table 1 layout: one row per angle, one column per method, RMSE in deg."""
+    cols = [m for m in methods if m in results]
+    width = 9
+    lines = []
+    if title:
+        lines.append(title)
+    lines.append(f"{'angle':<10}" + "".join(f"{TABLE_LABELS.get(m, m):>{width}}" for m in cols))
+    for name in robot.angle_names:
+        row = f"{name:<10}"
+        for m in cols:
+            v = results[m]["rmse_deg"].get(name)
+            row += f"{'-':>{width}}" if v is None else f"{v:>{width}.2f}"
+        lines.append(row)
+    lines.append(f"{'mean':<10}" + "".join(
+        f"{results[m]['mean_rmse_deg']:>{width}.2f}" for m in cols))
+    return "\n".join(lines)
+
+
+def markdown_table(results: dict, robot, methods: Sequence[str]) -> str:
+    cols = [m for m in methods if m in results]
+    lines = ["| angle | " + " | ".join(TABLE_LABELS.get(m, m) for m in cols) + " |",
+             "| --- |" + " ---: |" * len(cols)]
+    for name in robot.angle_names:
+        cells = []
+        for m in cols:
+            v = results[m]["rmse_deg"].get(name)
+            cells.append("-" if v is None else f"{v:.2f}")
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    lines.append("| mean | " + " | ".join(
+        f"{results[m]['mean_rmse_deg']:.2f}" for m in cols) + " |")
+    return "\n".join(lines)
+
+
+def evaluate_sessions(sessions, methods: Sequence[str], params=None, burn_in_s: float = 0.0):
+    """RMSE of every method on ``sessions``: the ``kckf evaluate --json`` document and the
+    estimated angles ``{method: [(T, K) per session]}``."""
+    from ._metrics import rmse_table
+    from ._run import filter_sessions
+
+    for s in sessions:
+        if not s.has_truth:
+            raise UsageError(
+                f"{s.path}: no motion capture overlaps the sensors (mocap.csv is needed to "
+                "evaluate)"
+            )
+    out, angles = {}, {}
+    for m in methods:
+        est = filter_sessions(sessions, m, params)
+        angles[m] = [e.angles for e in est]
+        out[m] = rmse_table(sessions, angles[m], burn_in_s)
+    return {"methods": out, "sessions": [s.path for s in sessions]}, angles
+
+
+def _session_name(path: str) -> str:
+    parts = os.path.normpath(path).split(os.sep)
+    return "_".join(parts[-2:]) if len(parts) >= 2 else parts[-1]
+
+
+# --------------------------------------------------------------------------- verbs
+def cmd_simulate(args) -> int:
+    from ._robot import Robot
+    from ._session import write_session
+    from ._simulate import simulate
+
+    robot = Robot.from_spec(args.joints)
+    session = simulate(robot, args.kind, seed=args.seed, duration_s=args.duration,
+                       drop_prob=args.drop_prob, move_s=args.move)
+    write_session(session, args.out)
+    _say(args, f"wrote {args.out}: {session.n_steps} sensor rows, {len(session.mocap_t)} mocap "
+               f"frames, joints {robot.spec}")
+    return 0
+
+
+def cmd_observability(args) -> int:
+    from ._observability import observability_ranks
+    from ._robot import Robot
+
+    print(json.dumps(observability_ranks(Robot.from_spec(args.joints))))
+    return 0
+
+
+def cmd_filter(args) -> int:
+    import numpy as np
+
+    from ._run import filter_sessions
+
+    method = _check_methods([args.method])[0]
+    (session,) = _read_sessions([args.session])
+    params = _load_params(args, [session])
+    (est,) = filter_sessions([session], method, params)
+    robot = session.robot
+    names = [n for k, n in enumerate(robot.angle_names) if np.isfinite(est.angles[:, k]).any()]
+    cols = [robot.angle_names.index(n) for n in names]
+    os.makedirs(os.path.dirname(os.path.abspath(args.output)), exist_ok=True)
+    with open(args.output, "w") as f:
+        f.write(",".join(["t", *names]) + "\n")
+        for t, row in zip(session.t, est.angles[:, cols]):
+            f.write(repr(float(t)) + "," + ",".join(
+                "" if not np.isfinite(v) else format(float(v), ".9g") for v in row) + "\n")
+    _say(args, f"wrote {args.output}: {session.n_steps} rows of {method} estimates")
+    return 0
+
+
+def cmd_evaluate(args) -> int:
+    methods = _check_methods(args.method or ["kckf"])
+    sessions = _read_sessions(args.sessions, require_mocap=True)
+    from ._run import common_robot
+
+    robot = common_robot(sessions)
+    params = _load_params(args, sessions)
+    doc, angles = evaluate_sessions(sessions, methods, params, args.burn_in)
+    if args.plot:
+        from .plots import plot_session
+
+        for i, s in enumerate(sessions):
+            plot_session(s, {m: angles[m][i] for m in methods}, args.plot, _session_name(s.path))
+        _say(args, f"figures in {args.plot}")
+    if args.json:
+        print(json.dumps(doc, indent=None))
+    else:
+        _say(args, format_table(doc["methods"], robot, methods,
+                                f"RMSE (deg) over {len(sessions)} session(s)"))
+    return 0
+
+
+def _load_params(args, sessions):
+    path = getattr(args, "params", None)
+    if not path:
+        return None
+    from ._params import load_params
+
+    params = load_params(path)
+    from ._run import common_robot
+
+    robot = common_robot(sessions)
+    if params.robot != robot:
+        raise UsageError(
+            f"{path}: parameters are for joints {params.robot.spec!r} but the session has "
+            f"{robot.spec!r}; fit parameters on sessions of this robot"
+        )
+    return params
+
+
+def data_dir() -> str:
+    """The shipped sample sessions: inside the installed package, or ``data/`` of a checkout."""
+    here = os.path.dirname(os.path.abspath(__file__))
+    for cand in (os.path.join(here, "_data"), os.path.join(os.path.dirname(here), "data")):
+        if os.path.isdir(cand):
+            return cand
+    raise UsageError("the sample sessions are missing: reinstall kckf-jax (pip install .)")
+
+
+def demo_sets(root: str) -> dict[str, dict[str, list[str]]]:
+    """``{dataset: {"train": [...], "test": [...]}}`` from ``data/<dataset>/<split><i>``."""
+    sets = {}
+    for ds in sorted(os.listdir(root)):
+        d = os.path.join(root, ds)
+        if not os.path.isdir(d):
+            continue
+        split = {"train": [], "test": []}
+        for s in sorted(os.listdir(d)):
+            for key in split:
+                if s.startswith(key) and os.path.isfile(os.path.join(d, s, "meta.json")):
+                    split[key].append(os.path.join(d, s))
+        if split["test"]:
+            sets[ds] = split
+    return sets
+
+
+def cmd_demo(args) -> int:
+    root = data_dir()
+    out = args.out
+    os.makedirs(out, exist_ok=True)
+    t0 = time.perf_counter()
+    report = {}
+    md = ["# kckf demo", ""]
+    for ds, split in demo_sets(root).items():
+        sessions = _read_sessions(split["test"], require_mocap=True)
+        robot = sessions[0].robot
+        doc, angles = evaluate_sessions(sessions, PAPER_TABLE_METHODS)
+        report[ds] = doc
+        title = (f"{ds}: RMSE (deg) on {len(sessions)} test session(s), joints {robot.spec} "
+                 "(paper Table 1 layout)")
+        _say(args, "", format_table(doc["methods"], robot, PAPER_TABLE_METHODS, title))
+        md += [f"## {ds}", "", markdown_table(doc["methods"], robot, PAPER_TABLE_METHODS), ""]
+        from .plots import plot_session
+
+        for i, s in enumerate(sessions):
+            plot_session(s, {m: angles[m][i] for m in PAPER_TABLE_METHODS},
+                         os.path.join(out, "figures"), _session_name(s.path))
+    with open(os.path.join(out, "results.json"), "w") as f:
+        json.dump(report, f, indent=2)
+    with open(os.path.join(out, "table.md"), "w") as f:
+        f.write("\n".join(md))
+    _say(args, "", f"wrote {out}/table.md, {out}/results.json and {out}/figures/ "
+                   f"({time.perf_counter() - t0:.1f} s)")
+    return 0
+
+
+# --------------------------------------------------------------------------- parser
+def build_parser() -> argparse.ArgumentParser:
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("--debug", action="store_true", help="show tracebacks on errors")
+    common.add_argument("--quiet", action="store_true", help="no progress or messages")
+
+    p = argparse.ArgumentParser(
+        prog="kckf", parents=[common],
+        description="Kinematically Constrained Kalman Filter for wearable serial-link robots.")
+    sub = p.add_subparsers(dest="verb", metavar="VERB")
+
+    d = sub.add_parser("demo", parents=[common], help="the main job on the shipped sample data")
+    d.add_argument("--out", default="kckf-demo", help="output folder (default ./kckf-demo)")
+    d.set_defaults(func=cmd_demo)
+
+    s = sub.add_parser("simulate", parents=[common], help="write a synthetic session")
+    s.add_argument("out", help="session folder to write")
+    s.add_argument("--kind", choices=("cyclic", "static", "human"), default="cyclic")
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--duration", type=float, default=120.0, help="seconds (default 120)")
+    s.add_argument("--joints", default="x,y,x,y", help="axes per joint, e.g. x,y,x,y or xyz,xyz")
+    s.add_argument("--drop-prob", type=float, default=0.0,
+                   help="probability that a reading is missing (default 0)")
+    s.add_argument("--move", type=float, default=60.0,
+                   help="static kind: seconds of movement before holding still (default 60)")
+    s.set_defaults(func=cmd_simulate)
+
+    f = sub.add_parser("filter", parents=[common], help="run one filter over a session")
+    f.add_argument("session")
+    f.add_argument("--method", default="kckf")
+    f.add_argument("--params", help="fitted parameters (kckf fit)")
+    f.add_argument("-o", "--output", required=True, help="estimates CSV to write")
+    f.set_defaults(func=cmd_filter)
+
+    e = sub.add_parser("evaluate", parents=[common], help="error figures against motion capture")
+    e.add_argument("sessions", nargs="+", metavar="SESSION")
+    e.add_argument("--method", action="append", help="repeatable (default kckf)")
+    e.add_argument("--params", help="fitted parameters (kckf fit)")
+    e.add_argument("--json", action="store_true", help="JSON on stdout")
+    e.add_argument("--plot", metavar="DIR", help="write Fig. 5/6-style plots to DIR")
+    e.add_argument("--burn-in", type=float, default=0.0, help="seconds left out at the start")
+    e.set_defaults(func=cmd_evaluate)
+
+    o = sub.add_parser("observability", parents=[common],
+                       help="observability ranks of the standard KF and the KCKF")
+    o.add_argument("--joints", required=True, help="axes per joint, e.g. x,y,x,y")
+    o.set_defaults(func=cmd_observability)
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "func", None):
+        parser.print_help(sys.stderr)
+        return 2
+    try:
+        return int(args.func(args) or 0)
+    except KeyboardInterrupt:
+        print("kckf: interrupted", file=sys.stderr)
+        return 130
+    except (ValueError, OSError) as exc:  # SessionError, UsageError, bad params, missing files
+        if args.debug:
+            raise
+        msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        if isinstance(exc, OSError) and exc.filename:
+            msg = f"{exc.filename}: {exc.strerror}"
+        print(f"kckf {args.verb}: error: {msg}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

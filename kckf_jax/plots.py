@@ -1,0 +1,94 @@
+"""Figures in the style of the KCKF paper's Figs. 5-7 (matplotlib, written to files).
+
+At the edge: the CLI and notebooks call these; nothing in the numerical core imports them.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping
+
+import numpy as np
+
+from ._session import Session
+
+RAD2DEG = 180.0 / np.pi
+LABELS = {"kckf": "KCKF", "kf": "Std KF", "gyro": "Gyro", "hall_l": "Hall l", "hall_r": "Hall r"}
+STYLES = {
+    "kckf": dict(color="C3", lw=1.6), "kf": dict(color="C2", lw=1.0),
+    "gyro": dict(color="C1", lw=0.8, alpha=0.8), "hall_l": dict(color="C0", lw=0.6, alpha=0.6),
+    "hall_r": dict(color="C4", lw=0.6, alpha=0.6),
+}
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg", force=True)
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def plot_session(
+    session: Session, angles: Mapping[str, np.ndarray], out_dir: str, name: str,
+) -> list[str]:
+    """Estimates of every method against motion capture, one figure for the joints (Fig. 5
+    style) and one for the torso angles (Fig. 6 style). Returns the files written.
+
+    Args:
+        session: the session (its ``truth()`` is drawn in black).
+        angles: ``{method: (T, K) angles in rad}``; NaN columns are skipped.
+        out_dir: folder to write into (created if needed).
+        name: file name prefix.
+    """
+    plt = _plt()
+    os.makedirs(out_dir, exist_ok=True)
+    robot = session.robot
+    t = session.t - session.t[0]
+    truth = session.truth()
+    files = []
+    groups = (("joints", list(range(robot.n_joint_axes))),
+              ("torso", list(range(robot.n_joint_axes, robot.n_angles))))
+    for group, idx in groups:
+        fig, axes = plt.subplots(len(idx), 1, figsize=(9, 2.0 * len(idx) + 0.6), sharex=True,
+                                 squeeze=False)
+        for ax, k in zip(axes[:, 0], idx):
+            ax.plot(t, truth[:, k] * RAD2DEG, color="k", lw=1.2, label="Mocap")
+            for method, a in angles.items():
+                col = np.asarray(a)[:, k]
+                if np.isfinite(col).any():
+                    ax.plot(t, col * RAD2DEG, label=LABELS.get(method, method),
+                            **STYLES.get(method, {}))
+            lim = np.nanmax(np.abs(truth[:, k] * RAD2DEG)) if np.isfinite(truth[:, k]).any() else 30
+            ax.set_ylim(-1.6 * lim - 5, 1.6 * lim + 5)
+            ax.set_ylabel(f"{robot.angle_names[k]} (deg)")
+            ax.grid(alpha=0.3)
+        axes[0, 0].legend(loc="upper right", ncol=6, fontsize=8)
+        axes[-1, 0].set_xlabel("time (s)")
+        fig.tight_layout()
+        path = os.path.join(out_dir, f"{name}_{group}.png")
+        fig.savefig(path, dpi=110)
+        plt.close(fig)
+        files.append(path)
+    return files
+
+
+def plot_drift(t: np.ndarray, errors_deg: Mapping[str, np.ndarray], path: str,
+               title: str = "") -> str:
+    """Absolute error over time of each method (the paper's Fig. 7), log scale."""
+    plt = _plt()
+    os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
+    fig, ax = plt.subplots(figsize=(8, 3.2))
+    for method, e in errors_deg.items():
+        ax.semilogy(t / 60.0, np.maximum(np.abs(e), 1e-3), label=LABELS.get(method, method),
+                    **STYLES.get(method, {}))
+    ax.set_xlabel("time (min)")
+    ax.set_ylabel("|error| (deg)")
+    ax.set_title(title)
+    ax.grid(alpha=0.3, which="both")
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path

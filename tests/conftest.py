@@ -1,0 +1,33 @@
+"""Test configuration: float64 available, runtime shape checking of the whole package.
+
+The jaxtyping import hook must run before ``kckf_jax`` is first imported, so that every
+annotated function and module field of the package is checked at call time in the tests.
+"""
+
+import os
+import sys
+
+os.environ.setdefault("JAX_PLATFORMS", "cpu")
+
+import jax  # noqa: E402
+from jaxtyping import install_import_hook  # noqa: E402
+
+jax.config.update("jax_enable_x64", True)
+
+with install_import_hook("kckf_jax", "beartype.beartype"):
+    import kckf_jax  # noqa: E402, F401
+
+sys.path.insert(0, os.path.dirname(__file__))
+
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+
+
+@pytest.fixture
+def key():
+    return jax.random.PRNGKey(0)
+
+
+@pytest.fixture
+def rng():
+    return np.random.default_rng(0)

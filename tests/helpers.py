@@ -1,0 +1,85 @@
+"""Shared test helpers: parameter conversion for the NumPy reference and random problems."""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+import numpy as np
+
+from kckf_jax import Params, Robot, SensorSeries
+
+DEG = np.pi / 180
+
+
+def reference_params(params: Params) -> dict:
+    """The physical values of ``params`` as the plain dict ``tests/reference.py`` takes."""
+    a, b, c, d, sign = (np.asarray(x, dtype=np.float64) for x in params.hall_coeffs)
+    out = {k: np.asarray(getattr(params, k), dtype=np.float64)
+           for k in ("q", "angle_rw", "bias_rw", "sigma_hall", "sigma_hall_v", "p0_angle",
+                     "p0_bias")}
+    out.update(a=a, b=b, c=c, d=d, sign=sign, hall_noise=params.hall_noise)
+    return out
+
+
+def joints_of(robot: Robot) -> list[list[str]]:
+    return [list(axes) for axes in robot.joints]
+
+
+def random_robot(rng: np.random.Generator, max_joints: int = 4) -> Robot:
+    n = int(rng.integers(1, max_joints + 1))
+    joints = []
+    for _ in range(n):
+        axes = tuple(a for a in "xyz" if rng.random() < 0.5)
+        joints.append(axes or (str(rng.choice(list("xyz"))),))
+    return Robot(tuple(joints))
+
+
+def random_params(rng: np.random.Generator, robot: Robot, hall_noise: str = "angle",
+                  dtype=jnp.float64) -> Params:
+    """Random but sensible parameters, Hall coefficients scattered around the paper's."""
+    K, M = robot.n_angles, robot.n_hall
+    models = {
+        name: {"a": 0.07 * np.exp(0.1 * rng.standard_normal()),
+               "b": 2.87 * np.exp(0.02 * rng.standard_normal()),
+               "c": 2.22e5 * np.exp(0.1 * rng.standard_normal()),
+               "d": 8.43 * np.exp(0.02 * rng.standard_normal()),
+               "sign": s, "unit": "deg"}
+        for name, s in zip(robot.hall_names, robot.hall_side_sign)
+    }
+    return Params.from_physical(
+        robot,
+        q=DEG**2 * np.exp(rng.uniform(-3, 3, K)),
+        angle_rw=DEG * np.exp(rng.uniform(-4, 0, K)),
+        bias_rw=0.1 * DEG * np.exp(rng.uniform(-3, 0, K)),
+        sigma_hall=DEG * rng.uniform(1, 5, M),
+        sigma_hall_v=rng.uniform(0.005, 0.05, M),
+        p0_angle=DEG * rng.uniform(5, 40, K),
+        p0_bias=DEG * rng.uniform(0.2, 2, K),
+        hall_models=models, hall_noise=hall_noise, dtype=dtype,
+    )
+
+
+def random_recording(rng: np.random.Generator, robot: Robot, T: int = 120,
+                     missing: float = 0.1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Timestamps, gyro rates and Hall voltages that follow the kinematic chain, with NaNs.
+
+    Irregular time steps (5-15 ms); link rates are the base rate plus the rates of the joints
+    below (so the constraint is consistent with the data); Hall voltages near the middle of
+    the curve with noise.
+    """
+    t = np.cumsum(rng.uniform(0.005, 0.015, T)) - 0.01
+    J = robot.n_joint_axes
+    rates = 0.5 * rng.standard_normal((T, J))
+    link = np.repeat(0.2 * rng.standard_normal((T, 1, 3)), robot.n_links, axis=1)
+    for j, (i, a) in enumerate(robot.joint_axes):
+        link[:, i:, "xyz".index(a)] += rates[:, j:j + 1]
+    gyro = link.reshape(T, -1) + 0.01 + 0.002 * rng.standard_normal((T, 3 * robot.n_links))
+    hall_v = rng.uniform(1.1, 1.9, (T, robot.n_hall))
+    gyro[rng.random(gyro.shape) < missing] = np.nan
+    hall_v[rng.random(hall_v.shape) < missing] = np.nan
+    return t, gyro, hall_v
+
+
+def series_of(t, gyro, hall_v, dtype=jnp.float64) -> SensorSeries:
+    dt = np.diff(np.asarray(t, np.float64), prepend=t[0])
+    return SensorSeries(jnp.asarray(dt, dtype), jnp.asarray(gyro, dtype),
+                        jnp.asarray(hall_v, dtype))
