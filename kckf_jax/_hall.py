@@ -16,7 +16,7 @@ import math
 
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, ArrayLike, Float
+from jaxtyping import Array, ArrayLike, Float, Real
 
 #: The paper's Eq. (1) coefficients, in degrees.
 PAPER_HALL_DEG = {"a": 0.07, "b": 2.87, "c": 2.22e5, "d": 8.43}
@@ -29,7 +29,7 @@ def hall_angle(
     b: Float[ArrayLike, "*M"],
     c: Float[ArrayLike, "*M"],
     d: Float[ArrayLike, "*M"],
-    sign: Float[ArrayLike, "*M"],
+    sign: Real[ArrayLike, "*M"],
 ) -> Float[Array, "*M"]:
     """Joint angle (rad) from Hall voltage ``v`` (V), Eq. (1); coefficients in rad."""
     v = jnp.asarray(v)
@@ -42,7 +42,7 @@ def hall_slope(
     b: Float[ArrayLike, "*M"],
     c: Float[ArrayLike, "*M"],
     d: Float[ArrayLike, "*M"],
-    sign: Float[ArrayLike, "*M"],
+    sign: Real[ArrayLike, "*M"],
 ) -> Float[Array, "*M"]:
     """``d theta / d V`` (rad/V) of Eq. (1)."""
     v = jnp.asarray(v)

@@ -13,11 +13,10 @@ import jax  # noqa: E402
 from jaxtyping import install_import_hook  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
-
-with install_import_hook("kckf_jax", "beartype.beartype"):
-    import kckf_jax  # noqa: E402, F401
-
 sys.path.insert(0, os.path.dirname(__file__))
+
+with install_import_hook("kckf_jax", "_typecheck.typechecker"):
+    import kckf_jax  # noqa: E402, F401
 
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402

@@ -1,0 +1,131 @@
+"""The ``kckf`` command against ../shared/spec/cli.md (in-process, plus one real subprocess)."""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from kckf_jax import read_session
+from kckf_jax.cli import main
+
+
+@pytest.fixture(scope="module")
+def session(tmp_path_factory):
+    path = str(tmp_path_factory.mktemp("cli") / "s1")
+    assert main(["simulate", path, "--kind", "cyclic", "--seed", "1", "--duration", "15",
+                 "--joints", "x,y,x,y", "--drop-prob", "0.01", "--quiet"]) == 0
+    return path
+
+
+def _text(path) -> str:
+    with open(path) as f:
+        return f.read()
+
+
+def _run(capsys, *argv):
+    code = main(list(argv))
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def test_simulate_writes_the_interchange_format(session):
+    meta = json.loads(_text(os.path.join(session, "meta.json")))
+    assert meta["format"] == "kckf-session/1" and len(meta["joints"]) == 4
+    s = read_session(session, require_mocap=True)
+    assert s.n_steps == 1500 and s.has_truth
+
+
+def test_evaluate_json_layout(session, capsys):
+    code, out, _ = _run(capsys, "evaluate", session, "--method", "kckf", "--method", "kf",
+                        "--method", "hall_l", "--json")
+    assert code == 0
+    doc = json.loads(out)
+    assert doc["sessions"] == [session]
+    for m in ("kckf", "kf", "hall_l"):
+        r = doc["methods"][m]
+        assert set(r) == {"rmse_deg", "mean_rmse_deg", "per_session"}
+        assert r["mean_rmse_deg"] == pytest.approx(np.mean(list(r["rmse_deg"].values())))
+        assert list(r["per_session"]) == [session]
+    assert "phi_x" in doc["methods"]["kckf"]["rmse_deg"]
+    assert "phi_x" not in doc["methods"]["hall_l"]["rmse_deg"]
+
+
+def test_evaluate_table_goes_to_stderr_and_plots(session, tmp_path, capsys):
+    code, out, err = _run(capsys, "evaluate", session, session, "--method", "kckf",
+                          "--method", "gyro", "--plot", str(tmp_path / "fig"))
+    assert code == 0 and out == ""
+    assert "KCKF" in err and "Gyro" in err and "phi_y" in err
+    assert sorted(os.listdir(tmp_path / "fig")) == ["cli0_s1_joints.png", "cli0_s1_torso.png"]
+
+
+def test_filter_writes_estimates_named_as_mocap(session, tmp_path, capsys):
+    out = str(tmp_path / "est.csv")
+    assert _run(capsys, "filter", session, "--method", "kckf", "-o", out)[0] == 0
+    rows = list(csv.reader(_text(out).splitlines()))
+    assert rows[0] == ["t", "theta1_x", "theta2_y", "theta3_x", "theta4_y", "phi_x", "phi_y"]
+    assert len(rows) == 1501
+    s = read_session(session)
+    assert float(rows[1][0]) == s.t[0] and float(rows[-1][0]) == s.t[-1]
+    assert _run(capsys, "filter", session, "--method", "hall_r", "-o", out)[0] == 0
+    header = next(csv.reader(_text(out).splitlines()))
+    assert header == ["t", "theta1_x", "theta2_y", "theta3_x", "theta4_y"]
+
+
+def test_observability(capsys):
+    code, out, _ = _run(capsys, "observability", "--joints", "xyz,xyz,xyz,xyz")
+    assert code == 0 and json.loads(out) == {"n_states": 30, "rank_kf": 24, "rank_kckf": 30}
+
+
+@pytest.mark.parametrize("argv, needle", [
+    (["observability", "--joints", "x,w"], "unknown axis 'w'"),
+    (["evaluate", "/nonexistent/session", "--json"], "/nonexistent/session"),
+    (["evaluate", "SESSION", "--method", "ukf"], "--method 'ukf'"),
+])
+def test_bad_input_is_one_line_exit_2(session, capsys, argv, needle):
+    argv = [session if a == "SESSION" else a for a in argv]
+    code, out, err = _run(capsys, *argv)
+    assert code == 2 and out == ""
+    assert needle in err and len(err.strip().splitlines()) == 1 and "Traceback" not in err
+
+
+def test_bad_session_names_file_line_and_column(session, tmp_path, capsys):
+    bad = tmp_path / "bad"
+    os.makedirs(bad)
+    for f in ("meta.json", "mocap.csv"):
+        (bad / f).write_text(_text(os.path.join(session, f)))
+    lines = _text(os.path.join(session, "sensors.csv")).splitlines()
+    cells = lines[5].split(",")
+    cells[3] = "abc"
+    lines[5] = ",".join(cells)
+    (bad / "sensors.csv").write_text("\n".join(lines) + "\n")
+    code, _, err = _run(capsys, "evaluate", str(bad), "--json")
+    assert code == 2
+    assert "sensors.csv" in err and "line 6" in err and "'abc'" in err and "gyro1_z" in err
+
+
+def test_demo_runs_on_the_shipped_data(tmp_path, capsys):
+    code, out, err = _run(capsys, "demo", "--out", str(tmp_path / "demo"))
+    assert code == 0 and out == ""
+    for label in ("Gyro", "Hall l", "Hall r", "Std KF", "KCKF", "phi_x", "theta4_y"):
+        assert label in err
+    res = json.loads((tmp_path / "demo" / "results.json").read_text())
+    assert set(res) == {"bench", "human"}
+    bench = res["bench"]["methods"]
+    for phi in ("phi_x", "phi_y"):
+        assert bench["kckf"]["rmse_deg"][phi] < 0.25 * bench["kf"]["rmse_deg"][phi]
+    assert os.listdir(tmp_path / "demo" / "figures")
+
+
+def test_console_script_and_module_entry_point():
+    r = subprocess.run([sys.executable, "-m", "kckf_jax", "--help"], capture_output=True,
+                       text=True, timeout=120)
+    assert r.returncode == 0 and "simulate" in r.stdout and "observability" in r.stdout
+    r = subprocess.run([sys.executable, "-m", "kckf_jax", "evaluate", "/no/such", "--json"],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and "Traceback" not in r.stderr
