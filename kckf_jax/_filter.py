@@ -37,7 +37,14 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from ._hall import hall_angle, hall_slope
-from ._model import FILTER_METHODS, initial_covariance, predicted_moments, structure
+from ._model import (
+    FILTER_METHODS,
+    block_gather,
+    initial_covariance,
+    predicted_moments,
+    q_blocks,
+    structure,
+)
 from ._params import Params
 
 METHODS = ("kckf", "kf", "gyro", "hall_l", "hall_r")
@@ -59,13 +66,14 @@ class SensorSeries(eqx.Module):
 class FilterState(eqx.Module):
     """What a filter carries from one step to the next.
 
-    ``z`` and ``P`` are the estimate and covariance in the filter's coordinates (for the
-    baselines, ``z`` holds the angles and ``P`` is empty); ``gyro_hold`` the last valid rate
-    of every gyro channel.
+    For the Kalman filters ``z`` (``P x Nz``) and ``P`` (``P x Nz x Nz``) are the estimate and
+    covariance of every axis block in the filter's coordinates (``_model.Structure``; use
+    ``full_state`` for the paper's ``x`` and its covariance). For the baselines ``z`` holds the
+    angles and ``P`` is empty. ``gyro_hold`` is the last valid rate of every gyro channel.
     """
 
-    z: Float[Array, " Nz"]
-    P: Float[Array, "Np Np"]  # Np = Nz for the Kalman filters, 0 for the baselines
+    z: Float[Array, "*b Nz"]
+    P: Float[Array, "*b Np Np"]
     gyro_hold: Float[Array, " G"]
 
 
@@ -94,7 +102,8 @@ def init_state(params: Params, method: str = "kckf") -> FilterState:
     hold = jnp.zeros(3 * robot.n_links, dtype)
     if method in FILTER_METHODS:
         st = structure(robot, method)
-        return FilterState(jnp.zeros(st.n_z, dtype), initial_covariance(st, params), hold)
+        P0 = initial_covariance(st, params)
+        return FilterState(jnp.zeros(P0.shape[:2], dtype), P0, hold)
     n = robot.n_angles if method == "gyro" else robot.n_joint_axes
     z0 = jnp.zeros(n, dtype) if method == "gyro" else jnp.full(n, jnp.nan, dtype)
     return FilterState(z0, jnp.zeros((0, 0), dtype), hold)
@@ -142,29 +151,68 @@ def hall_measurements(
     return angle, r, valid
 
 
+def fused_pairs(
+    angle: Float[Array, " M"], r: Float[Array, " M"], valid: Bool[Array, " M"]
+) -> tuple[Float[Array, " J"], Float[Array, " J"], Bool[Array, " J"]]:
+    """Combine the ``l`` and ``r`` readings of every joint axis into one measurement.
+
+    Two independent readings of the same angle are equivalent to one at their
+    inverse-variance weighted mean with variance ``1 / (1/r_l + 1/r_r)``: the posterior is the
+    same as after the paper's two rows (Eqs. 5, 8). A missing reading gets weight 0.
+    """
+    # A variance floor of 1e-12 rad^2 (6e-5 deg) keeps 1/r finite for a zero noise parameter.
+    w = jnp.where(valid, 1.0 / jnp.maximum(r, 1e-12), 0.0).reshape(-1, 2)
+    W = jnp.sum(w, axis=1)
+    ok = W > 0
+    Ws = jnp.where(ok, W, 1.0)
+    h = jnp.sum(w * angle.reshape(-1, 2), axis=1) / Ws
+    return h, 1.0 / Ws, ok
+
+
 def _kalman_step(params: Params, state: FilterState, inputs: SensorSeries, method: str):
-    st = structure(params.robot, method)
+    robot = params.robot
+    st = structure(robot, method)
     dtype = state.z.dtype
     dt = inputs.dt.astype(dtype)
-    # Predict y = [z, e] with the held rates of the previous row (Eqs. 9-13).
-    y, S = predicted_moments(st, params, state.z, state.P, state.gyro_hold, dt)
-    # KCKF: condition on the perfect measurements e = sum theta - phi = 0 (Eqs. 15-19).
-    for i in range(st.n_e):
-        e = st.n_z + i
-        y, S = _scalar_update(y, S, e, -y[e], jnp.zeros((), dtype), dt > 0)
-    z, P = y[: st.n_z], S[: st.n_z, : st.n_z]
-    # Hall updates, one sensor at a time (Eqs. 4-5, 8, 20).
+    # Block inputs: rates of the previous row (Eqs. 2, 9, 10) and process noise (Eq. 13).
+    plus, minus = robot.rate_pairs
+    rates = block_gather(st, state.gyro_hold[plus] - state.gyro_hold[minus])
+    noise = tuple(block_gather(st, x)
+                  for x in q_blocks(params.q, params.angle_rw, params.bias_rw, dt))
+    # Hall readings through Eq. 1, both sides of a joint fused, laid out by block.
     angle, r, valid = hall_measurements(params, inputs.hall_v.astype(dtype))
-    for m, j in enumerate(st.hall_index):
-        z, P = _scalar_update(z, P, j, angle[m] - z[j], r[m], valid[m])
-    P = 0.5 * (P + P.T)
+    h, rh, ok = fused_pairs(angle, r, valid)
+    ji = st.joint_index
+    pad = ji < 0
+    hb = jnp.where(pad, 0.0, h[np.maximum(ji, 0)])
+    rb = jnp.where(pad, 1.0, rh[np.maximum(ji, 0)])
+    vb = jnp.where(pad, False, ok[np.maximum(ji, 0)])
+
+    def block(z, P, rates, alpha, beta, gamma, hb, rb, vb):
+        # Predict y = [z, e] (Eqs. 3, 9-13).
+        y, S = predicted_moments(st, z, P, rates, (alpha, beta, gamma), dt)
+        # KCKF: condition on the perfect measurement e = sum theta - phi = 0 (Eqs. 15-19).
+        for i in range(st.n_e):
+            e = st.n_z + i
+            y, S = _scalar_update(y, S, e, -y[e], jnp.zeros((), dtype), dt > 0)
+        z, P = y[: st.n_z], S[: st.n_z, : st.n_z]
+        # Hall updates, one joint at a time (Eqs. 4-5, 8, 20).
+        for i in range(st.m):
+            z, P = _scalar_update(z, P, i, hb[i] - z[i], rb[i], vb[i])
+        return z, 0.5 * (P + P.T)
+
+    z, P = jax.vmap(block)(state.z, state.P, rates, *noise, hb, rb, vb)
     gyro = inputs.gyro.astype(dtype)
     hold = jnp.where(jnp.isfinite(gyro), gyro, state.gyro_hold)
+    # Back to the paper's coordinates: xb = T z per block, then block slots to angle order.
     T = jnp.asarray(st.T, dtype)
-    K = params.robot.n_angles
-    Ta = T[:K]
-    var = jnp.sum((Ta @ P) * Ta, axis=1)
-    est = Estimate(Ta @ z, jnp.sqrt(jnp.maximum(var, 0.0)), T[K:] @ z)
+    m1 = st.m + 1
+    xb = jnp.sum(T[None] * z[:, None, :], axis=2)  # (P, 2m + 2)
+    Ta = T[:m1]
+    TaP = jnp.sum(Ta[None, :, :, None] * P[:, None, :, :], axis=2)  # (P, m1, Nz)
+    var = jnp.sum(TaP * Ta[None], axis=2)
+    bo, so = st.block_of, st.slot_of
+    est = Estimate(xb[bo, so], jnp.sqrt(jnp.maximum(var[bo, so], 0.0)), xb[bo, m1 + so])
     return FilterState(z, P, hold), est
 
 
@@ -175,7 +223,8 @@ def _baseline_step(params: Params, state: FilterState, inputs: SensorSeries, met
     gyro = inputs.gyro.astype(dtype)
     nan_k = jnp.full(K, jnp.nan, dtype)
     if method == "gyro":
-        rates = jnp.asarray(robot.rate_map, dtype) @ state.gyro_hold
+        plus, minus = robot.rate_pairs
+        rates = state.gyro_hold[plus] - state.gyro_hold[minus]
         z = state.z + inputs.dt.astype(dtype) * rates
         angles = z
     else:
@@ -199,6 +248,48 @@ def step(
     if method in FILTER_METHODS:
         return _kalman_step(params, state, inputs, method)
     return _baseline_step(params, state, inputs, method)
+
+
+def scan_filter(
+    params: Params, series: SensorSeries, method: str = "kckf",
+    state: FilterState | None = None, remat_chunk: int | None = None,
+) -> tuple[FilterState, Estimate]:
+    """``lax.scan`` of ``step`` over one trial (not jitted: the building block of
+    ``run_filter`` and of the fitting loss).
+
+    ``remat_chunk``: split the scan into chunks of this many steps and recompute each chunk's
+    intermediate values in the backward pass (``jax.checkpoint``), so a gradient through
+    ``T`` steps stores about ``T / remat_chunk + remat_chunk`` states instead of every
+    intermediate of every step. The forward result is unchanged.
+    """
+    _check_method(method)
+    if state is None:
+        state = init_state(params, method)
+
+    def body(carry, row):
+        return step(params, carry, row, method)
+
+    if not remat_chunk:
+        return jax.lax.scan(body, state, series)
+    T = series.dt.shape[0]
+    c = int(remat_chunk)
+    n = -(-T // c)
+    pad = n * c - T
+    # Padding rows (dt = 0, every reading missing) are no-op steps.
+    padded = SensorSeries(
+        jnp.pad(series.dt, (0, pad)),
+        jnp.pad(series.gyro, ((0, pad), (0, 0)), constant_values=jnp.nan),
+        jnp.pad(series.hall_v, ((0, pad), (0, 0)), constant_values=jnp.nan),
+    )
+    chunks = jax.tree_util.tree_map(lambda x: x.reshape((n, c) + x.shape[1:]), padded)
+
+    @jax.checkpoint
+    def chunk_body(carry, rows):
+        return jax.lax.scan(body, carry, rows)
+
+    final, est = jax.lax.scan(chunk_body, state, chunks)
+    est = jax.tree_util.tree_map(lambda x: x.reshape((n * c,) + x.shape[2:])[:T], est)
+    return final, est
 
 
 @eqx.filter_jit
@@ -225,14 +316,7 @@ def run_filter(
         >>> est.angles.shape
         (5, 4)
     """
-    _check_method(method)
-    if state is None:
-        state = init_state(params, method)
-
-    def body(carry, row):
-        return step(params, carry, row, method)
-
-    return jax.lax.scan(body, state, series)
+    return scan_filter(params, series, method, state)
 
 
 def filter_batch(params: Params, series: SensorSeries, method: str = "kckf") -> Estimate:

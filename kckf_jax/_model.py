@@ -21,9 +21,10 @@ from __future__ import annotations
 import functools
 from dataclasses import dataclass
 
+import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float
+from jaxtyping import Array, ArrayLike, Float
 
 from ._params import Params
 from ._robot import Robot
@@ -92,23 +93,40 @@ def _structural(robot: Robot) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.nd
     return A1, Bu, C, D
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Structure:
-    """Constant matrices of one filter in its own coordinates (NumPy float64).
+    """The filter's constant matrices, per axis block (NumPy float64).
 
-    ``y = [z, e]`` has ``Ny = Nz + Ne`` entries; the estimate is ``z`` (``Nz`` entries) and ``e``
-    are perfect pseudo-measurements conditioned to zero at every step (``Ne = P`` for the KCKF,
-    0 for the KF). With time step ``ts``:
+    With the paper's diagonal noise (``Q``, ``R`` and ``P0`` all per coordinate), the model
+    splits exactly into independent blocks, one per torso axis ``a``: the joints rotating about
+    ``a`` (``m_a`` of them), the torso angle ``phi_a`` and their biases. No matrix couples two
+    blocks, so each block is filtered on its own and the blocks run side by side (``vmap``).
+    Blocks are padded to ``m = max_a m_a`` joints; a padding joint has zero rate, noise and
+    covariance and no sensor, so it stays exactly zero.
 
-    * predicted mean ``y = (F0 + ts F1) z + ts G1 u``, ``u`` the flattened gyro rates;
-    * predicted covariance ``(F0 + ts F1) P (F0 + ts F1)^T + Qy`` with
-      ``Qy = Ma diag(alpha) Ma^T + Ma diag(beta) Mb^T + Mb diag(beta) Ma^T + Mb diag(gamma) Mb^T``
-      (``alpha, beta, gamma`` from ``q_blocks``);
-    * Hall sensor ``m`` measures ``z[hall_index[m]]``;
-    * the paper's state is ``x = T z``; ``T[:K]`` gives the angles, ``T[K:]`` the biases.
+    Block coordinates (``xb``, the paper's order within the block): ``[theta_1..theta_m, phi,
+    b_1..b_m, b_phi]``. The filter runs in ``y = Mb xb = [z, e]``:
+
+    * KF: ``y = z = xb`` (``n_e = 0``);
+    * KCKF: ``z = [theta_1..theta_m, b_1..b_m, b_phi]``, ``e = sum theta - phi`` (Eq. 17), the
+      perfect measurement ``e = 0`` (``n_e = 1``); ``phi = sum theta`` after every step.
+
+    With time step ``ts`` and block rates ``r`` (``m + 1``: joint rates, then the torso rate):
+
+    * predicted mean ``y = (F0 + ts F1) z + ts G1 r``;
+    * predicted covariance ``F P F^T + Ma diag(alpha) Ma^T + Ma diag(beta) Mb^T +
+      Mb diag(beta) Ma^T + Mb diag(gamma) Mb^T`` (``alpha, beta, gamma`` from ``q_blocks``);
+    * the Hall pair of block joint ``i`` measures ``z[i]``;
+    * ``xb = T z``.
+
+    Gather maps (``-1`` marks padding): ``joint_index[p, i]`` is the joint axis (``0..J-1``)
+    in slot ``i`` of block ``p``; ``angle_index[p, i]`` the angle coordinate (``0..K-1``) of
+    block coordinate ``i`` (``i = m`` is the torso); ``block_of[k]``, ``slot_of[k]`` the way
+    back for every angle coordinate ``k``.
     """
 
     method: str
+    m: int
     n_z: int
     n_e: int
     F0: np.ndarray
@@ -117,68 +135,132 @@ class Structure:
     Ma: np.ndarray
     Mb: np.ndarray
     T: np.ndarray
-    hall_index: tuple[int, ...]
-    p0_angle_index: tuple[int, ...]  # which angle coordinate's p0 each z entry uses (or -1)
-    p0_bias_index: tuple[int, ...]
+    joint_index: np.ndarray  # (P, m)
+    angle_index: np.ndarray  # (P, m + 1)
+    block_of: np.ndarray  # (K,)
+    slot_of: np.ndarray  # (K,)
+    z_p0_angle: np.ndarray  # (n_z,) block angle coordinate whose p0_angle sets z's prior, or -1
+    z_p0_bias: np.ndarray  # (n_z,) block angle coordinate whose p0_bias sets z's prior, or -1
+
+    @functools.cached_property
+    def Qa(self) -> np.ndarray:
+        """``Qa[k] = Ma[:, k] Ma[:, k]^T``: ``Qy = sum_k alpha_k Qa[k] + beta_k Qab[k] + gamma_k
+        Qb[k]`` (precomputed outer products, (m + 1, Ny, Ny))."""
+        return np.einsum("ik,jk->kij", self.Ma, self.Ma)
+
+    @functools.cached_property
+    def Qab(self) -> np.ndarray:
+        return np.einsum("ik,jk->kij", self.Ma, self.Mb) + np.einsum("ik,jk->kij", self.Mb,
+                                                                      self.Ma)
+
+    @functools.cached_property
+    def Qb(self) -> np.ndarray:
+        return np.einsum("ik,jk->kij", self.Mb, self.Mb)
 
 
 @functools.lru_cache(maxsize=64)
 def structure(robot: Robot, method: str) -> Structure:
-    """The constant matrices of ``method`` (``"kckf"`` or ``"kf"``) for ``robot``."""
+    """The constant block matrices of ``method`` (``"kckf"`` or ``"kf"``) for ``robot``."""
     if method not in FILTER_METHODS:
         raise ValueError(f"structure: method must be one of {FILTER_METHODS}, got {method!r}")
-    K, J, P = robot.n_angles, robot.n_joint_axes, robot.n_torso_axes
-    N = 2 * K
-    A1, Bu, _, D = _structural(robot)
+    J, P = robot.n_joint_axes, robot.n_torso_axes
+    members = [[j for j, (_, a) in enumerate(robot.joint_axes) if a == ax]
+               for ax in robot.torso_axes]
+    m = max(len(x) for x in members)
+    nb = 2 * m + 2  # block state size in the paper's coordinates
+    A1 = np.zeros((nb, nb))
+    A1[np.arange(m + 1), m + 1 + np.arange(m + 1)] = -1.0  # Eqs. 9-11: -ts b
+    Bu = np.zeros((nb, m + 1))
+    Bu[np.arange(m + 1), np.arange(m + 1)] = 1.0  # Eq. 12: + ts rate
     if method == "kf":
-        Mx = np.eye(N)
-        n_z, n_e = N, 0
-        p0_angle_index = tuple(range(K)) + (-1,) * K
-        p0_bias_index = (-1,) * K + tuple(range(K))
+        Mx = np.eye(nb)
+        n_z, n_e = nb, 0
+        z_p0_angle = np.r_[np.arange(m + 1), -np.ones(m + 1, int)]
+        z_p0_bias = np.r_[-np.ones(m + 1, int), np.arange(m + 1)]
     else:
-        # y = [theta (J), b (J), b_phi (P), e (P)] with e = D x = S theta - phi.
-        Mx = np.zeros((N, N))
-        Mx[:J, :J] = np.eye(J)
-        Mx[J:2 * J, K:K + J] = np.eye(J)
-        Mx[2 * J:2 * J + P, K + J:] = np.eye(P)
-        Mx[2 * J + P:, :] = D
-        n_z, n_e = N - P, P
-        p0_angle_index = tuple(range(J)) + (-1,) * (J + P)
-        p0_bias_index = (-1,) * J + tuple(range(K))
+        Mx = np.zeros((nb, nb))
+        Mx[np.arange(m), np.arange(m)] = 1.0  # theta
+        Mx[m + np.arange(m + 1), m + 1 + np.arange(m + 1)] = 1.0  # b, b_phi
+        Mx[2 * m + 1, :m] = 1.0  # e = sum theta - phi (Eq. 17)
+        Mx[2 * m + 1, m] = -1.0
+        n_z, n_e = nb - 1, 1
+        z_p0_angle = np.r_[np.arange(m), -np.ones(m + 1, int)]
+        z_p0_bias = np.r_[-np.ones(m, int), np.arange(m + 1)]
     Minv = np.linalg.inv(Mx)
-    # Mx is a permutation plus integer rows; its inverse is exact in float64.
-    assert np.allclose(Minv @ Mx, np.eye(N)) and np.all(Minv == np.round(Minv))
+    # Mx is a permutation plus one integer row; its inverse is exact in float64.
+    assert np.allclose(Minv @ Mx, np.eye(nb)) and np.all(Minv == np.round(Minv))
+    joint_index = -np.ones((P, m), int)
+    angle_index = -np.ones((P, m + 1), int)
+    block_of = np.zeros(J + P, int)
+    slot_of = np.zeros(J + P, int)
+    for p, js in enumerate(members):
+        joint_index[p, : len(js)] = js
+        angle_index[p, : len(js)] = js
+        angle_index[p, m] = J + p
+        block_of[js], slot_of[js] = p, np.arange(len(js))
+        block_of[J + p], slot_of[J + p] = p, m
     return Structure(
-        method=method, n_z=n_z, n_e=n_e,
+        method=method, m=m, n_z=n_z, n_e=n_e,
         F0=(Mx @ Minv)[:, :n_z], F1=(Mx @ A1 @ Minv)[:, :n_z], G1=Mx @ Bu,
-        Ma=Mx[:, :K], Mb=Mx[:, K:], T=Minv[:, :n_z],
-        hall_index=tuple(int(j) for j in robot.hall_joint_axis),
-        p0_angle_index=p0_angle_index, p0_bias_index=p0_bias_index,
+        Ma=Mx[:, : m + 1], Mb=Mx[:, m + 1:], T=Minv[:, :n_z],
+        joint_index=joint_index, angle_index=angle_index, block_of=block_of, slot_of=slot_of,
+        z_p0_angle=z_p0_angle, z_p0_bias=z_p0_bias,
     )
+
+
+def block_gather(st: Structure, values: Float[Array, " K"]) -> Float[Array, "P m1"]:
+    """Per-angle-coordinate values (K,) laid out by block (P, m + 1); padding gets 0."""
+    idx = st.angle_index
+    ext = jnp.concatenate([values, jnp.zeros(1, values.dtype)])
+    return ext[np.where(idx >= 0, idx, values.shape[0])]
 
 
 def predicted_moments(
     st: Structure,
-    params: Params,
     z: Float[Array, " Nz"],
     P: Float[Array, "Nz Nz"],
-    u: Float[Array, " G"],
+    rates: Float[Array, " m1"],
+    noise: tuple[Float[Array, " m1"], Float[Array, " m1"], Float[Array, " m1"]],
     ts: Float[Array, ""],
 ) -> tuple[Float[Array, " Ny"], Float[Array, "Ny Ny"]]:
-    """Mean and covariance of ``y = [z, e]`` one step ahead (Eqs. 3, 9-13 in filter coordinates)."""
+    """Mean and covariance of one block's ``y = [z, e]`` one step ahead (Eqs. 3, 9-13)."""
+    # The matrices are a few rows wide: broadcast-multiply-sum lets XLA fuse each product into
+    # one loop instead of calling a matmul kernel per product (the step is overhead-bound).
     dtype = z.dtype
     F = jnp.asarray(st.F0, dtype) + ts * jnp.asarray(st.F1, dtype)
-    y = F @ z + ts * (jnp.asarray(st.G1, dtype) @ u)
-    alpha, beta, gamma = q_blocks(params.q, params.angle_rw, params.bias_rw, ts)
-    Ma, Mb = jnp.asarray(st.Ma, dtype), jnp.asarray(st.Mb, dtype)
-    Qy = (Ma * alpha) @ Ma.T + (Ma * beta) @ Mb.T + (Mb * beta) @ Ma.T + (Mb * gamma) @ Mb.T
-    return y, F @ P @ F.T + Qy
+    y = jnp.sum(F * z, axis=1) + ts * jnp.sum(jnp.asarray(st.G1, dtype) * rates, axis=1)
+    alpha, beta, gamma = noise
+    Qy = (jnp.sum(jnp.asarray(st.Qa, dtype) * alpha[:, None, None], axis=0)
+          + jnp.sum(jnp.asarray(st.Qab, dtype) * beta[:, None, None], axis=0)
+          + jnp.sum(jnp.asarray(st.Qb, dtype) * gamma[:, None, None], axis=0))
+    FP = jnp.sum(F[:, :, None] * P[None, :, :], axis=1)
+    return y, jnp.sum(FP[:, None, :] * F[None, :, :], axis=2) + Qy
 
 
-def initial_covariance(st: Structure, params: Params) -> Float[Array, "Nz Nz"]:
-    """Diagonal prior in filter coordinates from ``params.p0_angle`` and ``params.p0_bias``."""
-    pa, pb = params.p0_angle, params.p0_bias
-    ia, ib = np.asarray(st.p0_angle_index), np.asarray(st.p0_bias_index)
-    var = jnp.where(jnp.asarray(ia >= 0), pa[np.maximum(ia, 0)] ** 2, 0.0) + jnp.where(
-        jnp.asarray(ib >= 0), pb[np.maximum(ib, 0)] ** 2, 0.0)
-    return jnp.diag(var)
+def initial_covariance(st: Structure, params: Params) -> Float[Array, "P Nz Nz"]:
+    """Diagonal prior per block from ``params.p0_angle`` and ``params.p0_bias``; padding 0."""
+    pa = block_gather(st, params.p0_angle**2)  # (P, m + 1)
+    pb = block_gather(st, params.p0_bias**2)
+    ia, ib = st.z_p0_angle, st.z_p0_bias
+    var = (jnp.where(ia >= 0, pa[:, np.maximum(ia, 0)], 0.0)
+           + jnp.where(ib >= 0, pb[:, np.maximum(ib, 0)], 0.0))
+    return jax.vmap(jnp.diag)(var)
+
+
+def full_state(st: Structure, z: ArrayLike, P: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
+    """The paper's state ``x = [theta, phi, b, b_phi]`` (N,) and its covariance (N, N) from a
+    block state ``z`` (P, Nz), ``P`` (P, Nz, Nz) (NumPy; for tests and inspection)."""
+    z, P = np.asarray(z, np.float64), np.asarray(P, np.float64)
+    K = st.block_of.shape[0]
+    xb = np.einsum("ij,pj->pi", st.T, z)  # (P, 2m + 2)
+    Pb = np.einsum("ij,pjk,lk->pil", st.T, P, st.T)
+    # full index of every block coordinate: angle coordinates then biases (+K).
+    idx = np.concatenate([st.angle_index, np.where(st.angle_index >= 0, st.angle_index + K,
+                                                   -1)], axis=1)
+    x = np.zeros(2 * K)
+    Pf = np.zeros((2 * K, 2 * K))
+    for p in range(idx.shape[0]):
+        ok = idx[p] >= 0
+        x[idx[p][ok]] = xb[p][ok]
+        Pf[np.ix_(idx[p][ok], idx[p][ok])] = Pb[p][np.ix_(ok, ok)]
+    return x, Pf

@@ -216,3 +216,160 @@ def hall_arrays(robot: Robot, hall_models: Mapping[str, Mapping] | None = None):
             raise ValueError(f"hall_models[{name!r}].sign: expected 1 or -1, got {sign!r}")
         out[:, m] = (vals[0] * scale, vals[1], vals[2] * scale, vals[3], sign)
     return out[0], out[1], out[2], out[3], out[4]
+
+
+# ---------------------------------------------------------------------------- floors
+def with_floors(params: Params, *, angle_rw: float = 1e-3 * DEG, bias_rw: float = 1e-3 * DEG,
+                sigma_hall: float = 0.05 * DEG) -> Params:
+    """``params`` with zero-valued noise terms raised to small positive floors.
+
+    A term that is exactly zero (the paper has no angle or bias random walk) is stored as
+    ``log = -inf`` and its gradient is zero, so gradient descent could never switch it on. A fit
+    starts from the paper defaults with these floors instead (1e-3 deg/sqrt(s),
+    1e-3 deg/s/sqrt(s), 0.05 deg by default); values already above a floor are kept.
+    """
+    def floor(x, f):
+        return jnp.maximum(x, jnp.log(jnp.asarray(f, x.dtype)))
+
+    return eqx.tree_at(
+        lambda p: (p.log_angle_rw, p.log_bias_rw, p.log_sigma_hall), params,
+        (floor(params.log_angle_rw, angle_rw), floor(params.log_bias_rw, bias_rw),
+         floor(params.log_sigma_hall, sigma_hall)),
+    )
+
+
+# ---------------------------------------------------------------------------- JSON form
+PARAMS_FORMAT = "kckf-params/1"
+
+
+class ParamsFileError(ValueError):
+    """A parameter file that cannot be used, in one line naming the file and the field."""
+
+
+def params_to_dict(params: Params, fit_info: Mapping | None = None) -> dict:
+    """The human-readable JSON form: physical values with their units, keyed by name."""
+    robot = params.robot
+    f = {k: np.asarray(getattr(params, k), dtype=np.float64).tolist()
+         for k in ("q", "angle_rw", "bias_rw", "sigma_hall", "sigma_hall_v", "p0_angle",
+                   "p0_bias")}
+    a, b, c, d, _ = (np.asarray(x, dtype=np.float64) for x in params.hall_coeffs)
+    doc = {
+        "format": PARAMS_FORMAT,
+        "joints": robot.to_meta(),
+        "hall_noise": params.hall_noise,
+        "process_noise": {
+            name: {"q_rad2_s4": f["q"][k], "angle_rw_rad_rts": f["angle_rw"][k],
+                   "bias_rw_rad_s_rts": f["bias_rw"][k]}
+            for k, name in enumerate(robot.angle_names)
+        },
+        "initial_std": {
+            name: {"angle_rad": f["p0_angle"][k], "bias_rad_s": f["p0_bias"][k]}
+            for k, name in enumerate(robot.angle_names)
+        },
+        "hall": {
+            name: {"a": float(a[m] / DEG), "b": float(b[m]), "c": float(c[m] / DEG),
+                   "d": float(d[m]), "sign": int(params.hall_sign[m]), "unit": "deg",
+                   "sigma_rad": f["sigma_hall"][m], "sigma_v": f["sigma_hall_v"][m]}
+            for m, name in enumerate(robot.hall_names)
+        },
+    }
+    if fit_info:
+        doc["fit"] = dict(fit_info)
+    return doc
+
+
+def params_from_dict(doc: object, where: str = "parameters", dtype=None) -> Params:
+    """Parse ``params_to_dict``'s form; ``ParamsFileError`` names the field at fault."""
+
+    def fail(field: str, expected: str, got: object) -> ParamsFileError:
+        text = repr(got)
+        text = text if len(text) <= 60 else text[:57] + "..."
+        return ParamsFileError(f"{where}: {field}: expected {expected}, got {text}")
+
+    def obj(x, field):
+        if not isinstance(x, dict):
+            raise fail(field, "an object", x)
+        return x
+
+    def num(x, field, positive=False):
+        ok = isinstance(x, int | float) and not isinstance(x, bool) and math.isfinite(x)
+        if not ok or x < 0 or (positive and x == 0):
+            raise fail(field, "a positive number" if positive else "a number >= 0", x)
+        return float(x)
+
+    doc = obj(doc, "the file")
+    if doc.get("format") != PARAMS_FORMAT:
+        raise fail("format", repr(PARAMS_FORMAT), doc.get("format"))
+    try:
+        robot = Robot.from_meta(doc.get("joints"), where=where)
+    except ValueError as exc:
+        raise ParamsFileError(str(exc)) from None
+    noise = doc.get("hall_noise", "angle")
+    if noise not in HALL_NOISE_MODELS:
+        raise fail("hall_noise", " or ".join(map(repr, HALL_NOISE_MODELS)), noise)
+    pn, p0, hall = (obj(doc.get(k), k) for k in ("process_noise", "initial_std", "hall"))
+    vals: dict[str, list] = {k: [] for k in ("q", "angle_rw", "bias_rw", "p0_angle", "p0_bias",
+                                             "sigma_hall", "sigma_hall_v")}
+    for name in robot.angle_names:
+        e = obj(pn.get(name), f"process_noise.{name}")
+        vals["q"].append(num(e.get("q_rad2_s4"), f"process_noise.{name}.q_rad2_s4"))
+        vals["angle_rw"].append(num(e.get("angle_rw_rad_rts"),
+                                    f"process_noise.{name}.angle_rw_rad_rts"))
+        vals["bias_rw"].append(num(e.get("bias_rw_rad_s_rts"),
+                                   f"process_noise.{name}.bias_rw_rad_s_rts"))
+        e = obj(p0.get(name), f"initial_std.{name}")
+        vals["p0_angle"].append(num(e.get("angle_rad"), f"initial_std.{name}.angle_rad", True))
+        vals["p0_bias"].append(num(e.get("bias_rad_s"), f"initial_std.{name}.bias_rad_s", True))
+    models = {}
+    for name in robot.hall_names:
+        e = obj(hall.get(name), f"hall.{name}")
+        vals["sigma_hall"].append(num(e.get("sigma_rad"), f"hall.{name}.sigma_rad"))
+        vals["sigma_hall_v"].append(num(e.get("sigma_v"), f"hall.{name}.sigma_v"))
+        models[name] = {k: e.get(k) for k in ("a", "b", "c", "d", "sign", "unit")}
+    for key, names in (("process_noise", robot.angle_names), ("initial_std", robot.angle_names),
+                       ("hall", robot.hall_names)):
+        extra = sorted(set(doc[key]) - set(names))
+        if extra:
+            raise ParamsFileError(
+                f"{where}: {key}.{extra[0]}: not a name of the robot in this file "
+                f"(joints {robot.spec}); expected {', '.join(names)}")
+    try:
+        return Params.from_physical(robot, hall_models=models, hall_noise=noise, dtype=dtype,
+                                    **{k: np.asarray(v) for k, v in vals.items()})
+    except ValueError as exc:
+        raise ParamsFileError(f"{where}: {exc}") from None
+
+
+def save_params(params: Params, path: str, fit_info: Mapping | None = None) -> None:
+    """Write ``params`` as JSON (atomically: a crash never leaves half a file)."""
+    import json
+    import os
+
+    tmp = f"{path}.tmp"
+    with open(tmp, "w") as f:
+        json.dump(params_to_dict(params, fit_info), f, indent=2)
+        f.write("\n")
+    os.replace(tmp, path)
+
+
+def load_params(path: str, dtype=None) -> Params:
+    """Read a parameter file written by ``save_params`` / ``kckf fit``.
+
+    Raises ``ParamsFileError`` (a ``ValueError``) naming the file and the field: not JSON or
+    truncated, another format or version, wrong types or signs, names that do not belong to
+    the robot recorded in the file.
+    """
+    import json
+
+    try:
+        with open(path) as f:
+            text = f.read()
+    except OSError as exc:
+        raise ParamsFileError(f"{path}: cannot read the parameter file ({exc.strerror})") from None
+    try:
+        doc = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise ParamsFileError(
+            f"{path}: truncated or not valid JSON (line {exc.lineno}, column {exc.colno}: "
+            f"{exc.msg}); write it again with kckf fit") from None
+    return params_from_dict(doc, where=path, dtype=dtype)

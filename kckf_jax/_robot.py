@@ -217,6 +217,12 @@ class Robot:
         return w
 
     @functools.cached_property
+    def rate_pairs(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(plus, minus)``: angle rate ``k`` is ``u[plus[k]] - u[minus[k]]`` (``rate_map``)."""
+        w = self.rate_map
+        return np.argmax(w > 0, axis=1), np.argmax(w < 0, axis=1)
+
+    @functools.cached_property
     def used_gyro_columns(self) -> tuple[str, ...]:
         """The gyro columns the filters read (those with a non-zero in ``rate_map``)."""
         used = np.any(self.rate_map != 0.0, axis=0)

@@ -169,6 +169,7 @@ def simulate(
     move_s: float = 60.0,
     config: SimConfig | None = None,
     drop_prob: float | None = None,
+    device_seed: int | None = None,
 ) -> Session:
     """Simulate one recorded session of the exoshell on ``robot``.
 
@@ -180,6 +181,9 @@ def simulate(
         duration_s: length of the sensor recording, s.
         config: hardware constants (default ``SimConfig()``).
         drop_prob: overrides ``config.drop_prob`` (probability that a reading is NaN).
+        device_seed: seeds what belongs to the physical robot rather than to one recording:
+            each Hall sensor's true curve and each gyro axis's scale error. Sessions with the
+            same ``device_seed`` are trials of the same exoshell (default: ``seed``).
 
     Returns:
         A ``Session`` with sensors, motion capture (own rate, own clock) and meta. The true
@@ -200,6 +204,8 @@ def simulate(
     if drop_prob is not None:
         cfg = SimConfig(**{**asdict(cfg), "drop_prob": float(drop_prob)})
     rng = np.random.default_rng(np.random.SeedSequence([seed, KINDS.index(kind), len(robot.spec)]))
+    device_seed = seed if device_seed is None else device_seed
+    dev = np.random.default_rng(np.random.SeedSequence([device_seed, 7919, len(robot.spec)]))
 
     # ---- time: the microcontroller samples at its nominal rate with a little jitter.
     ts = 1.0 / cfg.sample_rate_hz
@@ -241,7 +247,7 @@ def simulate(
     walk_step = cfg.gyro_bias_walk_dps_rts * DPS * np.sqrt(np.diff(t, prepend=0.0))
     walk = np.cumsum(rng.standard_normal((n,) + shape) * walk_step[:, None, None], axis=0)
     bias = zero_rate + temp_coeff * warm[:, None, None] + walk
-    scale = 1 + cfg.gyro_scale_error * rng.standard_normal(shape)
+    scale = 1 + cfg.gyro_scale_error * dev.standard_normal(shape)
     white = cfg.gyro_noise_density_dps_rthz * DPS * np.sqrt(cfg.sample_rate_hz / 2)
     gyro = scale * link_rate + bias + white * rng.standard_normal(link_rate.shape)
     lsb = cfg.gyro_lsb_dps * DPS
@@ -251,14 +257,17 @@ def simulate(
     M = robot.n_hall
     nominal = np.array([PAPER_HALL_DEG[k] for k in "abcd"])
     rel = np.array([cfg.hall_cal_error_ac, cfg.hall_cal_error_bd] * 2)
-    true_coef = nominal * np.exp(rel * rng.standard_normal((M, 4)))  # (M, 4), deg
+    true_coef = nominal * np.exp(rel * dev.standard_normal((M, 4)))  # (M, 4), deg
     sign = np.asarray(robot.hall_side_sign, dtype=float)
     meas_angle = theta[:, robot.hall_joint_axis]  # (T, M)
     if kind == "human":
         # Interaction forces shift the sensors (paper Sec. 4.3): compression when upright,
         # over-extension at full bend; each sensor reads up to ~2 deg off at those moments.
+        # The shift comes from the robot's and the wearer's mechanics, so it repeats from trial
+        # to trial of one device (up to +-2 deg) with a smaller part that changes with every
+        # donning (+-0.5 deg).
         f = np.clip(flex if flex is not None else np.zeros(n), 0, 1)
-        shift = rng.uniform(-2, 2, (2, M)) * DEG
+        shift = (dev.uniform(-2, 2, (2, M)) + rng.uniform(-0.5, 0.5, (2, M))) * DEG
         meas_angle = meas_angle + np.outer((1 - f) ** 4, shift[0]) + np.outer(f**4, shift[1])
     v = hall_voltage(meas_angle / DEG, true_coef[:, 0], true_coef[:, 1], true_coef[:, 2],
                      true_coef[:, 3], sign)
@@ -288,7 +297,7 @@ def simulate(
         for name, s in zip(robot.hall_names, robot.hall_side_sign)
     }
     simulation = {
-        "kind": kind, "seed": seed, "duration_s": duration_s,
+        "kind": kind, "seed": seed, "device_seed": device_seed, "duration_s": duration_s,
         "config": asdict(cfg),
         "true_hall_models": {
             name: {"a": float(c[0]), "b": float(c[1]), "c": float(c[2]), "d": float(c[3]),

@@ -16,7 +16,7 @@ from collections.abc import Sequence
 
 PAPER_TABLE_METHODS = ("gyro", "hall_l", "hall_r", "kf", "kckf")
 TABLE_LABELS = {"gyro": "Gyro", "hall_l": "Hall l", "hall_r": "Hall r", "kf": "Std KF",
-                "kckf": "KCKF"}
+                "kckf": "KCKF", "kckf_fit": "KCKF fit"}
 
 
 class UsageError(ValueError):
@@ -211,6 +211,51 @@ def _load_params(args, sessions):
     return params
 
 
+def cmd_fit(args) -> int:
+    from ._fit import FitConfig, FitInterrupted, fit, fit_info
+    from ._params import save_params
+    from ._run import common_robot
+
+    sessions = _read_sessions(args.sessions, require_mocap=True)
+    val = _read_sessions(args.val or [], require_mocap=True)
+    common_robot(sessions + val)
+    config = FitConfig(steps=args.steps, learning_rate=args.lr, hall_noise=args.noise,
+                       freeze=tuple(args.freeze or ()), burn_in_s=args.burn_in,
+                       batch_size=args.batch_size, seed=args.seed)
+    init = None
+    if args.init:
+        from ._params import load_params
+
+        init = load_params(args.init)
+    ckpt = args.checkpoint or f"{args.output}.ckpt"
+    bar = Progress(config.steps, "fit", args.quiet)
+    last = {"val": None}
+
+    def on_step(rec):
+        if rec["val_deg"] is not None:
+            last["val"] = rec["val_deg"]
+        val_txt = f" val {last['val']:.3f}" if last["val"] is not None else ""
+        bar.update(1, f"loss {rec['loss_deg']:.3f} deg{val_txt}")
+
+    try:
+        result = fit(sessions, val, config, init=init, checkpoint=ckpt, resume=args.resume,
+                     callback=on_step)
+    except FitInterrupted as exc:
+        bar.close()
+        print(f"kckf fit: {exc}", file=sys.stderr)
+        return 130
+    bar.close()
+    save_params(result.params, args.output, fit_info(result, sessions, val, config))
+    if os.path.exists(ckpt):
+        os.remove(ckpt)
+    summary = {"params": args.output, "best_step": result.best_step,
+               "best_rmse_deg": result.best_loss_deg, "selected_on": "val" if val else "train",
+               "steps_done": result.steps_done, "stopped_early": result.stopped_early,
+               "seconds": round(result.seconds, 2)}
+    print(json.dumps(summary))
+    return 0
+
+
 def data_dir() -> str:
     """The shipped sample sessions: inside the installed package, or ``data/`` of a checkout."""
     here = os.path.dirname(os.path.abspath(__file__))
@@ -237,33 +282,64 @@ def demo_sets(root: str) -> dict[str, dict[str, list[str]]]:
     return sets
 
 
+#: The demo's fit: fixed steps, no validation split (the test sessions stay unseen).
+DEMO_FIT_STEPS = 80
+DEMO_FIT_LR = 0.06
+
+
 def cmd_demo(args) -> int:
+    from ._fit import FitConfig, fit, fit_info
+    from ._params import save_params
+
     root = data_dir()
     out = args.out
     os.makedirs(out, exist_ok=True)
     t0 = time.perf_counter()
     report = {}
-    md = ["# kckf demo", ""]
-    for ds, split in demo_sets(root).items():
-        sessions = _read_sessions(split["test"], require_mocap=True)
-        robot = sessions[0].robot
-        doc, angles = evaluate_sessions(sessions, PAPER_TABLE_METHODS)
+    md = ["# kckf demo", "",
+          f"Fitted KCKF: {DEMO_FIT_STEPS} Adam steps on the training sessions; every column "
+          "is scored on the held-out test sessions (RMSE, deg).", ""]
+    sets = demo_sets(root)
+    n_pad = max(len(split["train"]) for split in sets.values())
+    methods = [*PAPER_TABLE_METHODS, "kckf_fit"]
+    for ds, split in sets.items():
+        train = _read_sessions(split["train"], require_mocap=True)
+        test = _read_sessions(split["test"], require_mocap=True)
+        robot = test[0].robot
+        config = FitConfig(steps=args.steps, learning_rate=DEMO_FIT_LR)
+        bar = Progress(config.steps, f"fit {ds}", args.quiet)
+        result = fit(train, (), config, pad_trials_to=n_pad,
+                     callback=lambda r, bar=bar: bar.update(1, f"loss {r['loss_deg']:.3f} deg"))
+        bar.close()
+        params_path = os.path.join(out, f"{ds}_params.json")
+        save_params(result.params, params_path, fit_info(result, train, (), config))
+        doc, angles = evaluate_sessions(test, PAPER_TABLE_METHODS)
+        fitted, fitted_angles = evaluate_sessions(test, ["kckf"], result.params)
+        doc["methods"]["kckf_fit"] = fitted["methods"]["kckf"]
+        angles["kckf_fit"] = fitted_angles["kckf"]
+        doc["fit"] = {"params": params_path, "train_sessions": split["train"],
+                      "steps": result.steps_done, "seconds": round(result.seconds, 2),
+                      "train_rmse_deg": result.best_loss_deg}
         report[ds] = doc
-        title = (f"{ds}: RMSE (deg) on {len(sessions)} test session(s), joints {robot.spec} "
-                 "(paper Table 1 layout)")
-        _say(args, "", format_table(doc["methods"], robot, PAPER_TABLE_METHODS, title))
-        md += [f"## {ds}", "", markdown_table(doc["methods"], robot, PAPER_TABLE_METHODS), ""]
+        paper, fit_mean = (doc["methods"][m]["mean_rmse_deg"] for m in ("kckf", "kckf_fit"))
+        title = (f"{ds}: RMSE (deg) on {len(test)} test session(s), joints {robot.spec} "
+                 f"(paper Table 1 layout; KCKF fit = fitted on {len(train)} training "
+                 "session(s))")
+        _say(args, "", format_table(doc["methods"], robot, methods, title),
+             f"fitted KCKF mean RMSE {fit_mean:.3f} deg = {100 * fit_mean / paper:.0f} % of "
+             f"the paper-default KCKF's {paper:.3f} deg (fit: {result.seconds:.1f} s)")
+        md += [f"## {ds}", "", markdown_table(doc["methods"], robot, methods), ""]
         from .plots import plot_session
 
-        for i, s in enumerate(sessions):
-            plot_session(s, {m: angles[m][i] for m in PAPER_TABLE_METHODS},
+        for i, s in enumerate(test):
+            plot_session(s, {m: angles[m][i] for m in methods},
                          os.path.join(out, "figures"), _session_name(s.path))
     with open(os.path.join(out, "results.json"), "w") as f:
         json.dump(report, f, indent=2)
     with open(os.path.join(out, "table.md"), "w") as f:
         f.write("\n".join(md))
-    _say(args, "", f"wrote {out}/table.md, {out}/results.json and {out}/figures/ "
-                   f"({time.perf_counter() - t0:.1f} s)")
+    _say(args, "", f"wrote {out}/table.md, {out}/results.json, {out}/*_params.json and "
+                   f"{out}/figures/ ({time.perf_counter() - t0:.1f} s)")
     return 0
 
 
@@ -280,6 +356,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     d = sub.add_parser("demo", parents=[common], help="the main job on the shipped sample data")
     d.add_argument("--out", default="kckf-demo", help="output folder (default ./kckf-demo)")
+    d.add_argument("--steps", type=int, default=DEMO_FIT_STEPS,
+                   help=f"fitting steps per data set (default {DEMO_FIT_STEPS})")
     d.set_defaults(func=cmd_demo)
 
     s = sub.add_parser("simulate", parents=[common], help="write a synthetic session")
@@ -309,6 +387,27 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--plot", metavar="DIR", help="write Fig. 5/6-style plots to DIR")
     e.add_argument("--burn-in", type=float, default=0.0, help="seconds left out at the start")
     e.set_defaults(func=cmd_evaluate)
+
+    t = sub.add_parser("fit", parents=[common],
+                       help="learned tuning: fit parameters by gradient descent on the mocap RMSE")
+    t.add_argument("sessions", nargs="+", metavar="SESSION")
+    t.add_argument("-o", "--output", required=True, help="parameter file to write (JSON)")
+    t.add_argument("--val", nargs="+", metavar="SESSION",
+                   help="validation sessions: early stopping and choice of the best step")
+    t.add_argument("--steps", type=int, default=200, help="maximum gradient steps (200)")
+    t.add_argument("--seed", type=int, default=0, help="seeds minibatch draws (0)")
+    t.add_argument("--lr", type=float, default=0.03, help="Adam learning rate (0.03)")
+    t.add_argument("--noise", choices=("voltage", "angle"), default="voltage",
+                   help="Hall noise model of the fitted filter (default voltage)")
+    t.add_argument("--freeze", action="append", metavar="LEAF",
+                   help="keep a parameter leaf fixed, e.g. log_p0_angle (repeatable)")
+    t.add_argument("--burn-in", type=float, default=0.0, help="seconds left out of the loss")
+    t.add_argument("--batch-size", type=int, help="trials per step (default all)")
+    t.add_argument("--init", help="start from this parameter file instead of the paper's")
+    t.add_argument("--checkpoint", help="checkpoint file (default OUTPUT.ckpt)")
+    t.add_argument("--resume", action="store_true",
+                   help="continue an interrupted fit from its checkpoint")
+    t.set_defaults(func=cmd_fit)
 
     o = sub.add_parser("observability", parents=[common],
                        help="observability ranks of the standard KF and the KCKF")

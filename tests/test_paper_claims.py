@@ -48,7 +48,9 @@ def _min_eigenvalues(params, series, method):
 
     def body(state, row):
         state, est = step(params, state, row, method)
-        return state, (jnp.linalg.eigvalsh(state.P.astype(jnp.float64))[0], est.angles)
+        P = state.P.astype(jnp.float64)  # (blocks, Nz, Nz); one small solve per block
+        low = jnp.min(jnp.stack([jnp.linalg.eigvalsh(P[b])[0] for b in range(P.shape[0])]))
+        return state, (low, est.angles)
 
     return jax.lax.scan(body, init_state(params, method), series)[1]
 
