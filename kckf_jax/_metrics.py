@@ -62,3 +62,30 @@ def rmse_table(
             for k, name in enumerate(robot.angle_names) if name in names and cnt[k] > 0}
     mean = float(np.mean(list(rmse.values()))) if rmse else float("nan")
     return {"rmse_deg": rmse, "mean_rmse_deg": mean, "per_session": per_session}
+
+
+def fused_hall_error(params, reference, sessions: Sequence[Session]) -> np.ndarray:
+    """Per joint axis, the RMS difference (deg) between the fused Hall reading of ``params``
+    and of ``reference`` (e.g. the true curves of a simulation), over the sessions' readings.
+
+    The filter uses each joint's two Hall readings only through their inverse-variance
+    weighted mean (``_filter.fused_pairs``), so this is the part of a Hall calibration that
+    matters to it and that fitting can identify: a change of ``a`` against ``b`` (or ``c``
+    against ``d``) over the voltages a sensor visits, or an error of one side compensated by
+    the other, leaves it unchanged. Both use ``params``' weights.
+    """
+    import jax
+    import jax.numpy as jnp
+
+    from ._filter import fused_pairs, hall_measurements
+
+    def diff(v):
+        ang, r, ok = hall_measurements(params, v)
+        ang_ref, _, _ = hall_measurements(reference, v)
+        h, _, okj = fused_pairs(ang, r, ok)
+        h_ref, _, _ = fused_pairs(ang_ref, r, ok)
+        return jnp.where(okj, h - h_ref, jnp.nan)
+
+    d = np.concatenate([np.asarray(jax.vmap(diff)(jnp.asarray(s.hall_v, params.log_q.dtype)))
+                        for s in sessions])
+    return np.sqrt(np.nanmean(d.astype(np.float64) ** 2, axis=0)) * RAD2DEG

@@ -21,11 +21,13 @@ Motions (``kind``):
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass
 
 import numpy as np
 
 from ._hall import DEG, PAPER_HALL_DEG, hall_voltage
+from ._params import hall_arrays
 from ._robot import AXES, Robot
 from ._session import Session
 
@@ -170,6 +172,7 @@ def simulate(
     config: SimConfig | None = None,
     drop_prob: float | None = None,
     device_seed: int | None = None,
+    true_hall_models: Mapping[str, Mapping] | None = None,
 ) -> Session:
     """Simulate one recorded session of the exoshell on ``robot``.
 
@@ -184,6 +187,8 @@ def simulate(
         device_seed: seeds what belongs to the physical robot rather than to one recording:
             each Hall sensor's true curve and each gyro axis's scale error. Sessions with the
             same ``device_seed`` are trials of the same exoshell (default: ``seed``).
+        true_hall_models: the sensors' true Eq. 1 curves (``meta.json`` form, any unit) instead
+            of random ones; for experiments with known ground-truth parameters.
 
     Returns:
         A ``Session`` with sensors, motion capture (own rate, own clock) and meta. The true
@@ -258,6 +263,12 @@ def simulate(
     nominal = np.array([PAPER_HALL_DEG[k] for k in "abcd"])
     rel = np.array([cfg.hall_cal_error_ac, cfg.hall_cal_error_bd] * 2)
     true_coef = nominal * np.exp(rel * dev.standard_normal((M, 4)))  # (M, 4), deg
+    if true_hall_models is not None:
+        a, b, c, d, sgn = hall_arrays(robot, true_hall_models)  # rad
+        if np.any(sgn != np.asarray(robot.hall_side_sign)):
+            raise ValueError("simulate: true_hall_models must keep the default signs (+1 for l, "
+                             "-1 for r)")
+        true_coef = np.stack([a / DEG, b, c / DEG, d], axis=1)
     sign = np.asarray(robot.hall_side_sign, dtype=float)
     meas_angle = theta[:, robot.hall_joint_axis]  # (T, M)
     if kind == "human":
@@ -285,7 +296,8 @@ def simulate(
 
     # ---- motion capture: own rate, own clock (offset), noise, a shorter span.
     offset = rng.uniform(-cfg.mocap_offset_range_s, cfg.mocap_offset_range_s)
-    t_lo, t_hi = t[0] + cfg.mocap_margin_s, t[-1] - cfg.mocap_margin_s
+    margin = min(cfg.mocap_margin_s, 0.25 * (t[-1] - t[0]))  # short sessions keep some truth
+    t_lo, t_hi = t[0] + margin, t[-1] - margin
     t_frames = np.arange(t_lo, t_hi, 1.0 / cfg.mocap_rate_hz)  # sensor time
     angles = np.concatenate([theta, theta @ robot.torso_sum.T], axis=1)  # (T, K), phi = S theta
     truth = np.stack([np.interp(t_frames, t, angles[:, k]) for k in range(robot.n_angles)], 1)

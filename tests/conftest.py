@@ -30,3 +30,15 @@ def key():
 @pytest.fixture
 def rng():
     return np.random.default_rng(0)
+
+
+@pytest.fixture(scope="session")
+def demo_results(tmp_path_factory):
+    """``kckf demo`` run once for the whole test session: its results.json and stderr."""
+    import json
+
+    from kckf_jax.cli import main
+
+    out = tmp_path_factory.mktemp("demo")
+    assert main(["demo", "--out", str(out), "--quiet"]) == 0
+    return json.loads((out / "results.json").read_text()) | {"_out": str(out)}

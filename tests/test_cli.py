@@ -109,17 +109,26 @@ def test_bad_session_names_file_line_and_column(session, tmp_path, capsys):
     assert "sensors.csv" in err and "line 6" in err and "'abc'" in err and "gyro1_z" in err
 
 
-def test_demo_runs_on_the_shipped_data(tmp_path, capsys):
-    code, out, err = _run(capsys, "demo", "--out", str(tmp_path / "demo"))
-    assert code == 0 and out == ""
-    for label in ("Gyro", "Hall l", "Hall r", "Std KF", "KCKF", "phi_x", "theta4_y"):
-        assert label in err
-    res = json.loads((tmp_path / "demo" / "results.json").read_text())
-    assert set(res) == {"bench", "human"}
-    bench = res["bench"]["methods"]
+def test_demo_runs_on_the_shipped_data(demo_results):
+    out = demo_results["_out"]
+    assert {"bench", "human"} <= set(demo_results)
+    bench = demo_results["bench"]["methods"]
+    assert set(bench) == {"gyro", "hall_l", "hall_r", "kf", "kckf", "kckf_fit"}
     for phi in ("phi_x", "phi_y"):
         assert bench["kckf"]["rmse_deg"][phi] < 0.25 * bench["kf"]["rmse_deg"][phi]
-    assert os.listdir(tmp_path / "demo" / "figures")
+    assert os.listdir(os.path.join(out, "figures"))
+    assert os.path.exists(os.path.join(out, "bench_params.json"))
+    table = _text(os.path.join(out, "table.md"))
+    for label in ("Gyro", "Hall l", "Hall r", "Std KF", "KCKF", "KCKF fit", "phi_x", "theta4_y"):
+        assert label in table
+
+
+def test_demo_prints_the_table(tmp_path, capsys, monkeypatch):
+    """The table goes to stderr (for people), nothing to stdout; a 3-step fit keeps it quick."""
+    code, out, err = _run(capsys, "demo", "--out", str(tmp_path / "d"), "--steps", "3")
+    assert code == 0 and out == ""
+    for label in ("Gyro", "Hall l", "Hall r", "Std KF", "KCKF fit", "phi_y", "% of"):
+        assert label in err
 
 
 def test_console_script_and_module_entry_point():

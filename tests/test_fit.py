@@ -1,0 +1,254 @@
+"""Learned tuning: gradients, the training loop, checkpoints, sharding and parameter files."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from jax.test_util import check_grads
+
+from kckf_jax import Params, Robot, simulate
+from kckf_jax._fit import (
+    FitConfig,
+    FitInterrupted,
+    _filter_spec,
+    fit,
+    initial_params,
+    loss_fn,
+    make_batch,
+)
+from kckf_jax._params import ParamsFileError, load_params, params_to_dict, save_params
+from kckf_jax.cli import main
+
+ROBOT = Robot.from_spec("x,y")
+
+
+@pytest.fixture(scope="module")
+def small_sessions():
+    return [simulate(ROBOT, "cyclic", seed=s, duration_s=3.0, drop_prob=0.05, device_seed=1)
+            for s in (1, 2)]
+
+
+def _leaf_loss(params, batch, chunk=None):
+    diff, static = eqx.partition(params, eqx.is_array)
+
+    def f(*leaves):
+        d = jax.tree_util.tree_unflatten(jax.tree_util.tree_structure(diff), leaves)
+        return loss_fn(eqx.combine(d, static), batch, "kckf", chunk)
+
+    return f, jax.tree_util.tree_leaves(diff)
+
+
+def test_gradient_matches_finite_differences_float64(small_sessions):
+    batch = make_batch(small_sessions, jnp.float64)
+    batch = jax.tree_util.tree_map(lambda x: x[:, :120] if x.ndim >= 2 else x, batch)
+    params = initial_params(small_sessions, FitConfig(), jnp.float64)
+    f, leaves = _leaf_loss(params, batch)
+    check_grads(f, leaves, order=1, modes=["rev"], atol=1e-6, rtol=1e-4, eps=1e-6)
+
+
+def test_no_nan_gradient_with_missing_readings_and_truth(small_sessions):
+    """Missing sensor readings, steps without truth, padded trials: finite loss and gradient."""
+    s = small_sessions[0]
+    s.hall_v[10:40, :3] = np.nan  # dropped Hall readings
+    s.gyro[20:25] = np.nan  # dropped gyro packets
+    s.mocap[: len(s.mocap) // 2, 0] = np.nan  # an occluded marker
+    s._truth = None
+    batch = make_batch([s, small_sessions[1]], jnp.float32, burn_in_s=0.5, multiple_of=4)
+    assert not bool(jnp.all(batch.mask))
+    params = initial_params(small_sessions, FitConfig(), jnp.float32)
+    for chunk in (None, 37):
+        loss, grads = eqx.filter_value_and_grad(lambda p, c=chunk: loss_fn(p, batch, "kckf", c))(
+            params)
+        assert np.isfinite(float(loss))
+        for g in jax.tree_util.tree_leaves(grads):
+            assert np.all(np.isfinite(np.asarray(g)))
+
+
+def test_remat_chunks_give_the_same_loss_and_gradient(small_sessions):
+    batch = make_batch(small_sessions, jnp.float64)
+    params = initial_params(small_sessions, FitConfig(), jnp.float64)
+    out = [eqx.filter_value_and_grad(lambda p, c=c: loss_fn(p, batch, "kckf", c))(params)
+           for c in (None, 17, 100)]
+    for loss, grads in out[1:]:
+        assert float(loss) == pytest.approx(float(out[0][0]), rel=1e-12)
+        for a, b in zip(jax.tree_util.tree_leaves(grads), jax.tree_util.tree_leaves(out[0][1])):
+            np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-12)
+
+
+def test_fit_lowers_the_loss_and_is_deterministic(small_sessions):
+    cfg = FitConfig(steps=8, learning_rate=0.05, batch_size=1, seed=3)
+    a = fit(small_sessions, small_sessions[1:], cfg)
+    b = fit(small_sessions, small_sessions[1:], cfg)
+    assert a.best_loss_deg < a.history[0]["loss_deg"]
+    for x, y in zip(jax.tree_util.tree_leaves(a.params), jax.tree_util.tree_leaves(b.params)):
+        np.testing.assert_array_equal(x, y)
+    assert [h["loss_deg"] for h in a.history] == [h["loss_deg"] for h in b.history]
+
+
+def test_frozen_leaves_do_not_move(small_sessions):
+    cfg = FitConfig(steps=3, freeze=("log_hall_a", "log_p0_angle"))
+    res = fit(small_sessions, (), cfg)
+    init = initial_params(small_sessions, cfg)
+    np.testing.assert_array_equal(res.params.log_hall_a, init.log_hall_a)
+    np.testing.assert_array_equal(res.params.log_p0_angle, init.log_p0_angle)
+    assert not np.array_equal(res.params.log_hall_c, init.log_hall_c)
+    with pytest.raises(ValueError, match="unknown leaf 'log_nothing'"):
+        FitConfig(freeze=("log_nothing",))
+    assert _filter_spec(init, ("log_q",)).log_q is False
+
+
+def test_interrupted_fit_resumes_with_nothing_lost(small_sessions, tmp_path):
+    cfg = FitConfig(steps=9, checkpoint_every=2, learning_rate=0.05)
+    full = fit(small_sessions, small_sessions[1:], cfg)
+    ckpt = str(tmp_path / "fit.ckpt")
+
+    def stop_after_5(rec):
+        if rec["step"] == 5:
+            raise KeyboardInterrupt
+
+    with pytest.raises(FitInterrupted, match="after step 5"):
+        fit(small_sessions, small_sessions[1:], cfg, checkpoint=ckpt, callback=stop_after_5)
+    assert os.path.exists(ckpt)
+    resumed = fit(small_sessions, small_sessions[1:], cfg, checkpoint=ckpt, resume=True)
+    for x, y in zip(jax.tree_util.tree_leaves(full.params),
+                    jax.tree_util.tree_leaves(resumed.params)):
+        np.testing.assert_array_equal(x, y)
+    assert [h["loss_deg"] for h in resumed.history] == [h["loss_deg"] for h in full.history]
+    other = FitConfig(steps=9, checkpoint_every=2, learning_rate=0.01)
+    with pytest.raises(ValueError, match="other sessions or settings"):
+        fit(small_sessions, small_sessions[1:], other, checkpoint=ckpt, resume=True)
+
+
+def test_params_file_round_trip_and_errors(tmp_path):
+    robot = Robot.from_spec("xz,y")
+    p = Params.from_physical(robot, angle_rw=1e-3, hall_noise="voltage")
+    path = str(tmp_path / "p.json")
+    save_params(p, path, {"note": "test"})
+    q = load_params(path)
+    assert q.robot == robot and q.hall_noise == "voltage"
+    for a, b in zip(jax.tree_util.tree_leaves(p), jax.tree_util.tree_leaves(q)):
+        np.testing.assert_allclose(a, b, rtol=1e-6)
+    doc = json.loads((tmp_path / "p.json").read_text())
+    assert doc["format"] == "kckf-params/1" and doc["fit"] == {"note": "test"}
+    assert doc["hall"]["hall1_x_l"]["unit"] == "deg"
+
+    def broken(edit, needle):
+        d = json.loads(json.dumps(params_to_dict(p)))
+        edit(d)
+        (tmp_path / "b.json").write_text(json.dumps(d))
+        with pytest.raises(ParamsFileError, match=needle):
+            load_params(str(tmp_path / "b.json"))
+
+    broken(lambda d: d.update(format="kckf-params/9"), "format: expected 'kckf-params/1'")
+    broken(lambda d: d["process_noise"]["theta1_x"].update(q_rad2_s4="big"),
+           r"process_noise.theta1_x.q_rad2_s4: expected a number >= 0, got 'big'")
+    broken(lambda d: d["hall"]["hall1_x_l"].update(sigma_v=-1),
+           r"hall.hall1_x_l.sigma_v: expected a number >= 0")
+    broken(lambda d: d["hall"].pop("hall2_y_r"), r"hall.hall2_y_r: expected an object")
+    broken(lambda d: d["hall"].update(hall9_x_l={}), "hall.hall9_x_l: not a name of the robot")
+    broken(lambda d: d.update(joints=[{"axes": ["w"]}]), "unknown axis 'w'")
+    (tmp_path / "t.json").write_text((tmp_path / "p.json").read_text()[:200])
+    with pytest.raises(ParamsFileError, match="truncated or not valid JSON"):
+        load_params(str(tmp_path / "t.json"))
+
+
+def test_cli_fit_then_filter_and_evaluate_with_params(tmp_path, capsys):
+    sessions = []
+    for seed in (1, 2):
+        path = str(tmp_path / f"s{seed}")
+        assert main(["simulate", path, "--seed", str(seed), "--duration", "4", "--joints",
+                     "x,y", "--quiet"]) == 0
+        sessions.append(path)
+    out = str(tmp_path / "p.json")
+    assert main(["fit", sessions[0], "--val", sessions[1], "-o", out, "--steps", "4",
+                 "--quiet"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["params"] == out and summary["selected_on"] == "val"
+    assert not os.path.exists(out + ".ckpt")
+    assert main(["evaluate", sessions[1], "--params", out, "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["methods"]["kckf"]["mean_rmse_deg"] > 0
+    assert main(["filter", sessions[1], "--params", out, "-o", str(tmp_path / "e.csv")]) == 0
+    # Parameters of another robot: one line, exit 2.
+    other = str(tmp_path / "other.json")
+    save_params(Params.paper_defaults(Robot.from_spec("x,y,x,y")), other)
+    capsys.readouterr()
+    assert main(["evaluate", sessions[1], "--params", other, "--json"]) == 2
+    err = capsys.readouterr().err
+    assert "x,y,x,y" in err and len(err.strip().splitlines()) == 1
+
+
+def test_sigterm_keeps_a_checkpoint_and_resume_finishes(tmp_path):
+    """A real `kckf fit` process killed with SIGTERM resumes to the uninterrupted result."""
+    s = str(tmp_path / "s")
+    assert main(["simulate", s, "--seed", "4", "--duration", "3", "--joints", "x,y",
+                 "--quiet"]) == 0
+    args = [sys.executable, "-m", "kckf_jax", "fit", s, "--steps", "60", "--quiet"]
+    ref = str(tmp_path / "ref.json")
+    assert subprocess.run(args + ["-o", ref], capture_output=True, timeout=300).returncode == 0
+    out = str(tmp_path / "p.json")
+    proc = subprocess.Popen(args + ["-o", out], stderr=subprocess.PIPE, text=True)
+    deadline = time.time() + 240
+    while not os.path.exists(out + ".ckpt") and time.time() < deadline:
+        if proc.poll() is not None:
+            pytest.fail(f"fit ended before its first checkpoint: {proc.stderr.read()}")
+        time.sleep(0.01)
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=120)
+    if proc.returncode == 0:
+        pytest.skip("the fit finished before SIGTERM arrived")
+    assert proc.returncode == 130 and "--resume" in err and os.path.exists(out + ".ckpt")
+    r = subprocess.run(args + ["-o", out, "--resume"], capture_output=True, text=True,
+                       timeout=300)
+    assert r.returncode == 0, r.stderr
+    a, b = (json.loads(Path(p).read_text()) for p in (ref, out))
+    assert a["hall"] == b["hall"] and a["process_noise"] == b["process_noise"]
+
+
+SHARDING_SCRIPT = textwrap.dedent("""
+    import os, json
+    os.environ["XLA_FLAGS"] = "--xla_force_host_platform_device_count=4"
+    import jax
+    jax.config.update("jax_enable_x64", True)
+    import equinox as eqx, jax.numpy as jnp, numpy as np
+    from kckf_jax import simulate
+    from kckf_jax._fit import FitConfig, fit, initial_params, loss_fn, make_batch, shard_batch
+    assert jax.device_count() == 4
+    sessions = [simulate("x,y", "cyclic", seed=s, duration_s=2.0, device_seed=1,
+                         drop_prob=0.02) for s in range(6)]
+    params = initial_params(sessions, FitConfig(), jnp.float64)
+    batch = make_batch(sessions, jnp.float64, multiple_of=4)
+    g = eqx.filter_jit(eqx.filter_value_and_grad(lambda p, b: loss_fn(p, b)))
+    one_dev = jax.devices()[:1]
+    l1, g1 = g(params, jax.device_put(batch, one_dev[0]))
+    sharded = shard_batch(batch)
+    assert len(sharded.truth.sharding.device_set) == 4
+    l4, g4 = g(params, sharded)
+    err = max(float(np.max(np.abs(np.asarray(a) - np.asarray(b))))
+              for a, b in zip(jax.tree_util.tree_leaves(g1), jax.tree_util.tree_leaves(g4)))
+    res = fit(sessions, sessions[:2], FitConfig(steps=3), dtype=jnp.float64)
+    print(json.dumps({"loss1": float(l1), "loss4": float(l4), "grad_err": err,
+                      "fit_loss": res.best_loss_deg}))
+""")
+
+
+def test_sharded_over_four_devices_equals_one_device():
+    r = subprocess.run([sys.executable, "-c", SHARDING_SCRIPT], capture_output=True, text=True,
+                       timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    out = json.loads(r.stdout.strip().splitlines()[-1])
+    assert out["loss4"] == pytest.approx(out["loss1"], rel=1e-12)
+    assert out["grad_err"] < 1e-12
+    assert np.isfinite(out["fit_loss"])
