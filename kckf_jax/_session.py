@@ -283,12 +283,7 @@ def read_session(path: str | os.PathLike, *, require_mocap: bool = False) -> Ses
             f"{SENSORS_FILE} and optionally {MOCAP_FILE}"
         )
     meta_path = os.path.join(folder, META_FILE)
-    meta = _read_meta(meta_path)
-
-    try:
-        robot = Robot.from_meta(meta.get("joints"), where=meta_path)
-    except ValueError as e:
-        raise SessionError(_prefixed(meta_path, e)) from None
+    meta, robot, hall_models = _read_meta_checked(meta_path)
     sample_rate_hz = meta.get("sample_rate_hz")
     if not _is_number(sample_rate_hz) or not sample_rate_hz > 0 or math.isinf(sample_rate_hz):
         raise SessionError(
@@ -300,16 +295,6 @@ def read_session(path: str | os.PathLike, *, require_mocap: bool = False) -> Ses
         raise SessionError(
             f"{meta_path}: 'mocap_time_offset_s' must be a number (s), got {offset_s!r}"
         )
-    hall_models = meta.get("hall_models", {})
-    if not isinstance(hall_models, dict):
-        raise SessionError(
-            f"{meta_path}: 'hall_models' must be an object keyed by Hall column name, "
-            f"got {hall_models!r}"
-        )
-    try:
-        hall_arrays(robot, hall_models)
-    except ValueError as e:
-        raise SessionError(f"{meta_path}: {e}") from None
     description = meta.get("description", "")
     if not isinstance(description, str):
         raise SessionError(f"{meta_path}: 'description' must be a string, got {description!r}")
@@ -355,6 +340,32 @@ def read_session(path: str | os.PathLike, *, require_mocap: bool = False) -> Ses
         mocap_t=mocap_t, mocap=mocap, mocap_time_offset_s=float(offset_s),
         hall_models=hall_models, description=description, extra_meta=extra_meta, path=folder,
     )
+
+
+def read_meta(meta_path: str | os.PathLike) -> tuple[Robot, dict]:
+    """The robot layout and Hall calibration of a ``meta.json`` (validated as in
+    ``read_session``): what a live stream needs to know about the robot."""
+    _, robot, hall_models = _read_meta_checked(os.fspath(meta_path))
+    return robot, hall_models
+
+
+def _read_meta_checked(meta_path: str) -> tuple[dict, Robot, dict]:
+    meta = _read_meta(meta_path)
+    try:
+        robot = Robot.from_meta(meta.get("joints"), where=meta_path)
+    except ValueError as e:
+        raise SessionError(_prefixed(meta_path, e)) from None
+    hall_models = meta.get("hall_models", {})
+    if not isinstance(hall_models, dict):
+        raise SessionError(
+            f"{meta_path}: 'hall_models' must be an object keyed by Hall column name, "
+            f"got {hall_models!r}"
+        )
+    try:
+        hall_arrays(robot, hall_models)
+    except ValueError as e:
+        raise SessionError(f"{meta_path}: {e}") from None
+    return meta, robot, hall_models
 
 
 def _read_meta(meta_path: str) -> dict:

@@ -256,6 +256,95 @@ def cmd_fit(args) -> int:
     return 0
 
 
+def cmd_stream(args) -> int:
+    import signal
+
+    from ._params import Params, load_params
+    from ._session import read_meta, read_session
+    from ._stream import (
+        PacketParser,
+        StreamingFilter,
+        low_latency,
+        open_sink,
+        open_source,
+        replay_path,
+        run_stream,
+    )
+
+    method = _check_methods([args.method])[0]
+    session = None
+    if replay_path(args.source):
+        session = read_session(replay_path(args.source))
+    robot, hall_models = None, None
+    if args.meta:
+        robot, hall_models = read_meta(args.meta)
+    elif session is not None:
+        robot, hall_models = session.robot, session.hall_models
+    if args.params:
+        params = load_params(args.params, dtype=args.dtype)
+        if robot is not None and params.robot != robot:
+            raise UsageError(f"{args.params}: parameters are for joints {params.robot.spec!r} "
+                             f"but the stream has {robot.spec!r}")
+    elif robot is not None:
+        params = Params.paper_defaults(robot, hall_models, dtype=args.dtype)
+    else:
+        raise UsageError("the robot layout is unknown: give --meta meta.json, --params FILE or "
+                         "a replay://SESSION source")
+    low_latency()
+    sf = StreamingFilter(params, method, gap_s=args.gap, on_gap=args.on_gap)
+    sf.warmup()  # compiled before the source opens: no early packet waits for XLA
+    source = open_source(args.source, session, realtime=args.realtime)
+    sink = open_sink(args.sink, flush=session is None or args.realtime)
+    stop = {"now": False}
+
+    def on_signal(signum, frame):
+        stop["now"] = True
+
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, on_signal)
+    source.open()
+    extra = ""
+    if hasattr(source, "rcvbuf_actual"):
+        extra = f", receive buffer {source.rcvbuf_actual} bytes"
+    print(f"kckf stream: listening on {source.description} (method {method}, "
+          f"{jnp_name(params)}{extra})", file=sys.stderr, flush=True)
+    try:
+        counts = run_stream(source, sink, sf, PacketParser(params.robot),
+                            max_packets=args.max_packets, idle_timeout=args.idle_timeout,
+                            should_stop=lambda: stop["now"])
+    finally:
+        source.close()
+    _say(args, "kckf stream: " + ", ".join(f"{k} {v}" for k, v in counts.items()))
+    return 0
+
+
+def jnp_name(params) -> str:
+    import numpy as np
+
+    return np.dtype(params.log_q.dtype).name
+
+
+def cmd_export(args) -> int:
+    from ._export import export_step
+    from ._params import Params, load_params
+
+    if args.params:
+        params = load_params(args.params, dtype=args.dtype)
+    elif args.meta:
+        from ._session import read_meta
+
+        robot, hall_models = read_meta(args.meta)
+        params = Params.paper_defaults(robot, hall_models, dtype=args.dtype)
+    else:
+        raise UsageError("give --params FILE (fitted) or --meta meta.json (paper defaults)")
+    method = _check_methods([args.method])[0]
+    n = export_step(params, args.output, method=method, baked=not args.pass_params)
+    _say(args, f"wrote {args.output} ({n} bytes): {method} step for joints "
+               f"{params.robot.spec}, parameters {'passed' if args.pass_params else 'baked in'}; "
+               "run it with kckf_jax/export_loader.py (imports only jax and numpy)")
+    return 0
+
+
 def data_dir() -> str:
     """The shipped sample sessions: inside the installed package, or ``data/`` of a checkout."""
     here = os.path.dirname(os.path.abspath(__file__))
@@ -409,6 +498,34 @@ def build_parser() -> argparse.ArgumentParser:
                    help="continue an interrupted fit from its checkpoint")
     t.set_defaults(func=cmd_fit)
 
+    r = sub.add_parser("stream", parents=[common], help="live filtering of sensor packets")
+    r.add_argument("--source", required=True,
+                   help="udp://HOST:PORT, serial:///dev/ttyX?baud=B or replay://SESSION")
+    r.add_argument("--sink", default="stdout", help="stdout (default) or udp://HOST:PORT")
+    r.add_argument("--params", help="fitted parameters (kckf fit)")
+    r.add_argument("--meta", help="meta.json giving the robot layout and Hall calibration")
+    r.add_argument("--method", default="kckf")
+    r.add_argument("--max-packets", type=int, help="stop after this many packets")
+    r.add_argument("--idle-timeout", type=float, help="stop after this many seconds of silence")
+    r.add_argument("--realtime", action="store_true", help="replay at the recorded pace")
+    r.add_argument("--gap", type=float, default=0.5,
+                   help="seconds between packets that count as a gap (default 0.5)")
+    r.add_argument("--on-gap", choices=("predict", "restart"), default="predict",
+                   help="predict across a gap (default) or restart the filter")
+    r.add_argument("--dtype", choices=("float32", "float64"), default="float32")
+    r.set_defaults(func=cmd_stream)
+
+    x = sub.add_parser("export", parents=[common],
+                       help="serialise the jitted step with jax.export for deployment")
+    x.add_argument("--params", help="fitted parameters (kckf fit)")
+    x.add_argument("--meta", help="or: meta.json for the paper-default filter of that robot")
+    x.add_argument("--method", default="kckf")
+    x.add_argument("-o", "--output", required=True, help="file to write (.jaxexport)")
+    x.add_argument("--pass-params", action="store_true",
+                   help="take the parameters as an input instead of baking them in")
+    x.add_argument("--dtype", choices=("float32", "float64"), default="float32")
+    x.set_defaults(func=cmd_export)
+
     o = sub.add_parser("observability", parents=[common],
                        help="observability ranks of the standard KF and the KCKF")
     o.add_argument("--joints", required=True, help="axes per joint, e.g. x,y,x,y")
@@ -422,6 +539,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     if not getattr(args, "func", None):
         parser.print_help(sys.stderr)
         return 2
+    if getattr(args, "dtype", None) == "float64":
+        import jax
+
+        jax.config.update("jax_enable_x64", True)
     try:
         return int(args.func(args) or 0)
     except KeyboardInterrupt:

@@ -1,0 +1,75 @@
+"""Serialise the streaming step with ``jax.export`` for deployment without kckf-jax.
+
+The file holds a small JSON header (layout, names, dtype, initial state, parameters when they
+are passed rather than baked in) and the serialised ``jax.export.Exported`` of the very
+function ``StreamingFilter`` runs. ``kckf_jax/export_loader.py`` runs it in a process that
+imports only jax and numpy.
+"""
+
+from __future__ import annotations
+
+import json
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._filter import init_state
+from ._params import _LEAVES, Params
+from ._stream import stream_step_fn
+
+MAGIC = b"KCKF-JAXEXPORT/1\n"
+
+
+def export_step(params: Params, path: str, method: str = "kckf", baked: bool = True) -> int:
+    """Write the per-packet step of ``method`` to ``path``; returns the file size in bytes.
+
+    Args:
+        params: the filter parameters (their dtype is the exported precision).
+        path: output file (``.jaxexport``).
+        method: one of ``METHODS``.
+        baked: bake the parameters into the program (default); otherwise the program takes
+            the vector of unconstrained parameter leaves as its first input, so new fitted
+            parameters can be loaded without exporting again.
+    """
+    robot = params.robot
+    dtype = params.log_q.dtype
+    fn, flatten, _ = stream_step_fn(params, method)
+    s0 = np.asarray(flatten(init_state(params, method)))
+    x_size = 1 + 3 * robot.n_links + robot.n_hall
+    spec_s = jax.ShapeDtypeStruct(s0.shape, dtype)
+    spec_x = jax.ShapeDtypeStruct((x_size,), dtype)
+    sizes = [int(np.size(getattr(params, name))) for name in _LEAVES]
+    leaves = np.concatenate([np.ravel(np.asarray(getattr(params, n))) for n in _LEAVES])
+    if baked:
+        exported = jax.export.export(jax.jit(lambda s, x: fn(s, x)))(spec_s, spec_x)
+    else:
+        cuts = np.cumsum(sizes)[:-1].tolist()
+
+        def with_params(p_flat, s, x):
+            parts = jnp.split(p_flat, cuts)
+            p = eqx.tree_at(lambda q: [getattr(q, n) for n in _LEAVES], params, list(parts))
+            return fn(s, x, p)
+
+        spec_p = jax.ShapeDtypeStruct(leaves.shape, dtype)
+        exported = jax.export.export(jax.jit(with_params))(spec_p, spec_s, spec_x)
+    estimated = [not (method in ("hall_l", "hall_r") and k >= robot.n_joint_axes)
+                 for k in range(robot.n_angles)]
+    header = {
+        "format": "kckf-export/1", "method": method, "joints": robot.to_meta(),
+        "dtype": np.dtype(dtype).name, "gyro_names": list(robot.gyro_names),
+        "hall_names": list(robot.hall_names), "angle_names": list(robot.angle_names),
+        "estimated": estimated, "initial_state": s0.tolist(), "x_size": x_size,
+        "params_mode": "baked" if baked else "passed",
+        "params": None if baked else leaves.tolist(),
+        "param_leaves": [[n, k] for n, k in zip(_LEAVES, sizes)],
+    }
+    head = json.dumps(header).encode()
+    blob = exported.serialize()
+    with open(path, "wb") as f:
+        f.write(MAGIC)
+        f.write(len(head).to_bytes(8, "little"))
+        f.write(head)
+        f.write(blob)
+    return len(MAGIC) + 8 + len(head) + len(blob)

@@ -1,0 +1,297 @@
+"""Streaming: the batch filter's step, one packet at a time; it never dies on bad input."""
+
+from __future__ import annotations
+
+import json
+import os
+import pty
+import signal
+import socket
+import subprocess
+import sys
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from kckf_jax import Params, Robot, run_filter, session_series, simulate, write_session
+from kckf_jax._filter import SensorSeries
+from kckf_jax._stream import USED, PacketParser, StreamingFilter
+
+ROBOT = Robot.from_spec("x,y,x,y")
+
+
+@pytest.fixture(scope="module")
+def session():
+    return simulate(ROBOT, "cyclic", seed=9, duration_s=8.0, drop_prob=0.02)
+
+
+def packet_bytes(s, i) -> bytes:
+    obj = {"t": float(s.t[i])}
+    for names, row in ((s.robot.gyro_names, s.gyro[i]), (s.robot.hall_names, s.hall_v[i])):
+        obj.update({n: None if np.isnan(v) else float(v) for n, v in zip(names, row)})
+    return json.dumps(obj).encode()
+
+
+def batch_angles(s, rows, dtype):
+    """``run_filter`` over the given rows of ``s`` only (the packets that arrived)."""
+    params = Params.paper_defaults(s.robot, s.hall_models, dtype=dtype)
+    t = s.t[rows]
+    series = SensorSeries(jnp.asarray(np.diff(t, prepend=t[0]), dtype),
+                          jnp.asarray(s.gyro[rows], dtype), jnp.asarray(s.hall_v[rows], dtype))
+    return np.asarray(run_filter(params, series, "kckf")[1].angles, np.float64)
+
+
+BAD = [b"not json", b"[1, 2]", b'{"gyro1_x": 0.1}', b'{"t": "soon"}', b"\xff\xfe\x00",
+       b'{"t": NaN}', b"{" * 5000]
+
+
+@pytest.mark.parametrize(("dtype", "tol"), [(jnp.float32, 1e-4), (jnp.float64, 1e-6)])
+def test_stream_equals_batch_with_drops_and_garbage(session, dtype, tol):
+    rng = np.random.default_rng(0)
+    keep = np.flatnonzero(rng.random(session.n_steps) > 0.05)  # 5 % of packets lost
+    sf = StreamingFilter(Params.paper_defaults(ROBOT, session.hall_models, dtype=dtype))
+    sf.warmup()
+    parser = PacketParser(ROBOT)
+    out = []
+    for j, i in enumerate(keep):
+        if j % 37 == 0:
+            rec = sf.push(parser.parse(BAD[j % len(BAD)]))
+            assert rec["status"] not in USED and "theta1_x" not in rec
+        rec = sf.push(parser.parse(packet_bytes(session, i)))
+        assert rec["status"] in ("ok", "masked")
+        out.append([rec[n] for n in ROBOT.angle_names])
+    ref = batch_angles(session, keep, dtype)
+    assert np.max(np.abs(np.asarray(out) - ref)) <= tol
+
+
+def test_one_trace_whatever_arrives(session):
+    """Packets of every kind, gaps and restarts: the step is traced once (a retrace raises)."""
+    sf = StreamingFilter(Params.paper_defaults(ROBOT), on_gap="restart", gap_s=0.2)
+    parser = PacketParser(ROBOT)
+    for i in range(50):
+        sf.push(parser.parse(packet_bytes(session, i)))
+        sf.push(parser.parse(BAD[i % len(BAD)]))
+    rec = sf.push(parser.parse(json.dumps({"t": float(session.t[50]) + 5.0}).encode()))
+    assert rec["status"] == "gap" and rec["gap"] == "restart"
+    assert sf._fn._cache_size() == 1
+
+
+def test_statuses(session):
+    sf = StreamingFilter(Params.paper_defaults(ROBOT), gap_s=0.3)
+    p = PacketParser(ROBOT, max_bytes=2000)
+    first = sf.push(p.parse(packet_bytes(session, 0)))
+    assert first["status"] == "ok" and set(ROBOT.angle_names) <= set(first)
+    cases = {
+        b"not json": "malformed", b"[]": "malformed", b'{"gyro1_x": 1}': "missing_t",
+        b'{"t": null}': "missing_t", b'{"t": "x"}': "bad_t", b'{"t": Infinity}': "bad_t",
+        b'{"t": 0.0}': "out_of_order", b" " * 3000: "oversized",
+    }
+    for data, status in cases.items():
+        rec = sf.push(p.parse(data))
+        assert rec["status"] == status, (data, rec)
+    t1 = float(session.t[1])
+    rec = sf.push(p.parse(json.dumps({"t": t1, "gyro1_x": "fast", "hall1_x_l": 1e9,
+                                      "hall1_x_r": 1.5, "extra": 1}).encode()))
+    assert rec["status"] == "masked" and "gyro1_x" in rec["note"] and "'extra'" in rec["note"]
+    rec = sf.push(p.parse(json.dumps({"t": t1}).encode()))  # duplicate t
+    assert rec["status"] == "out_of_order"
+    rec = sf.push(p.parse(json.dumps({"t": t1 + 2.0, "hall1_x_l": 1.3}).encode()))
+    assert rec["status"] == "gap" and rec["gap"] == "predict" and rec["gap_s"] == pytest.approx(2)
+    assert np.all(np.isfinite(np.asarray(sf._state)))
+
+
+def test_gap_restart_equals_a_fresh_filter(session):
+    params = Params.paper_defaults(ROBOT, session.hall_models)
+    a = StreamingFilter(params, on_gap="restart", gap_s=0.5)
+    b = StreamingFilter(params)
+    p = PacketParser(ROBOT)
+    for i in range(30):
+        a.push(p.parse(packet_bytes(session, i)))
+    later = [json.loads(packet_bytes(session, i)) for i in range(100, 130)]
+    for obj in later:
+        obj["t"] += 10.0
+        ra = a.push(p.parse(json.dumps(obj).encode()))
+        rb = b.push(p.parse(json.dumps(obj).encode()))
+        assert ra["theta1_x"] == pytest.approx(rb["theta1_x"], abs=1e-9)
+
+
+@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(st.binary(max_size=300))
+def test_fuzz_random_bytes_never_raise(data):
+    pkt = PacketParser(ROBOT).parse(data)
+    assert pkt.status in ("ok", "masked", "malformed", "oversized", "missing_t", "bad_t")
+
+
+_SF = {}
+
+
+def _fuzz_filter():
+    if "sf" not in _SF:
+        _SF["sf"] = StreamingFilter(Params.paper_defaults(ROBOT, dtype=jnp.float32))
+        _SF["p"] = PacketParser(ROBOT)
+    return _SF["sf"], _SF["p"]
+
+
+values = st.one_of(st.none(), st.booleans(), st.text(max_size=5),
+                   st.floats(allow_nan=True, allow_infinity=True),
+                   st.integers(min_value=-10**30, max_value=10**30), st.lists(st.integers(),
+                                                                                max_size=2))
+keys = st.sampled_from(["t", *ROBOT.gyro_names, *ROBOT.hall_names, "junk", ""])
+
+
+@settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(st.dictionaries(keys, values, max_size=30))
+def test_fuzz_random_json_never_poisons_the_state(obj):
+    sf, p = _fuzz_filter()
+    try:
+        data = json.dumps(obj, allow_nan=True).encode()
+    except (ValueError, OverflowError):
+        data = repr(obj).encode()
+    rec = sf.push(p.parse(data))
+    assert rec["status"] in ("ok", "masked", "gap", "malformed", "missing_t", "bad_t",
+                             "out_of_order")
+    state = np.asarray(sf._state)
+    assert np.all(np.isfinite(state)), rec
+    if rec["status"] in USED:
+        assert all(np.isfinite(rec[n]) for n in ROBOT.angle_names)
+
+
+# --------------------------------------------------------------------------- processes
+def _start(args, **kw):
+    proc = subprocess.Popen([sys.executable, "-m", "kckf_jax", "stream", *args],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **kw)
+    deadline = time.time() + 120
+    line = ""
+    while time.time() < deadline:
+        line = proc.stderr.readline()
+        if "listening" in line or proc.poll() is not None:
+            break
+    assert "listening" in line, line + proc.stderr.read()
+    return proc
+
+
+def _free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.mark.parametrize(("dtype", "tol"), [("float32", 1e-4), ("float64", 1e-6)])
+def test_udp_loopback_equals_batch(session, tmp_path, dtype, tol):
+    path = str(tmp_path / "s")
+    write_session(session, path)
+    port = _free_port()
+    proc = _start(["--source", f"udp://127.0.0.1:{port}", "--meta", f"{path}/meta.json",
+                   "--idle-timeout", "2", "--dtype", dtype])
+    rng = np.random.default_rng(1)
+    keep = np.flatnonzero(rng.random(session.n_steps) > 0.05)
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+        for j, i in enumerate(keep):
+            if j % 50 == 0:
+                sock.sendto(BAD[j % len(BAD)][:1000], ("127.0.0.1", port))
+            sock.sendto(packet_bytes(session, i), ("127.0.0.1", port))
+            if j % 100 == 0:
+                time.sleep(0.005)
+    out, err = proc.communicate(timeout=120)
+    assert proc.returncode == 0, err
+    recs = [json.loads(line) for line in out.splitlines()]
+    ok = [r for r in recs if r["status"] in USED]
+    assert len(ok) == len(keep) and len(recs) > len(keep)
+    got = np.array([[r[n] for n in ROBOT.angle_names] for r in ok])
+    ref = batch_angles(session, keep, jnp.float64 if dtype == "float64" else jnp.float32)
+    assert np.max(np.abs(got - ref)) <= tol
+
+
+def test_serial_pty_with_line_noise(session, tmp_path):
+    path = str(tmp_path / "s")
+    write_session(session, path)
+    master, slave = pty.openpty()
+    proc = _start(["--source", f"serial://{os.ttyname(slave)}?baud=115200", "--meta",
+                   f"{path}/meta.json", "--max-packets", "55", "--idle-timeout", "20"])
+    lines = []
+    for i in range(50):
+        lines.append(packet_bytes(session, i) + b"\n")
+        if i % 10 == 0:
+            lines.append(b"\x00\xff#garbage!!\r\n")
+    os.write(master, b"".join(lines))
+    out, err = proc.communicate(timeout=120)
+    os.close(master)
+    os.close(slave)
+    assert proc.returncode == 0, err
+    recs = [json.loads(line) for line in out.splitlines()]
+    assert [r["status"] for r in recs].count("ok") + [r["status"] for r in recs].count(
+        "masked") == 50
+    assert sum(r["status"] == "malformed" for r in recs) == 5
+
+
+def test_replay_sigterm_flushes_and_exits_0(session, tmp_path):
+    path = str(tmp_path / "s")
+    write_session(session, path)
+    proc = _start(["--source", f"replay://{path}", "--realtime"])
+    time.sleep(1.0)
+    proc.send_signal(signal.SIGTERM)
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 0, err
+    recs = [json.loads(line) for line in out.splitlines()]
+    assert 20 < len(recs) < session.n_steps and all(r["status"] == "ok" for r in recs[:10])
+
+
+def test_replay_to_udp_sink_and_max_packets(session, tmp_path):
+    path = str(tmp_path / "s")
+    write_session(session, path)
+    port = _free_port()
+    rx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    rx.bind(("127.0.0.1", port))
+    rx.settimeout(30)
+    proc = subprocess.run([sys.executable, "-m", "kckf_jax", "stream", "--source",
+                           f"replay://{path}", "--sink", f"udp://127.0.0.1:{port}",
+                           "--max-packets", "25"], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    got = [json.loads(rx.recv(65536)) for _ in range(25)]
+    rx.close()
+    assert got[-1]["t"] == pytest.approx(session.t[24]) and proc.stdout == ""
+
+
+def test_stream_needs_a_robot(capsys):
+    from kckf_jax.cli import main
+
+    assert main(["stream", "--source", "udp://127.0.0.1:9"]) == 2
+    assert "robot layout is unknown" in capsys.readouterr().err
+
+
+LOADER_CHECK = """
+import json, runpy, sys
+sys.argv = ["export_loader.py", sys.argv[1]]
+try:
+    runpy.run_path(sys.argv_loader, run_name="__main__")
+except SystemExit:
+    pass
+assert "kckf_jax" not in sys.modules and "equinox" not in sys.modules, "imported kckf-jax"
+"""
+
+
+@pytest.mark.parametrize("pass_params", [False, True])
+def test_export_runs_without_kckf_jax(session, tmp_path, pass_params):
+    from kckf_jax.cli import main
+
+    path = str(tmp_path / "s")
+    write_session(session, path)
+    exp = str(tmp_path / "step.jaxexport")
+    args = ["export", "--meta", f"{path}/meta.json", "-o", exp, "--quiet"]
+    assert main(args + (["--pass-params"] if pass_params else [])) == 0
+    loader = os.path.join(os.path.dirname(__file__), "..", "kckf_jax", "export_loader.py")
+    script = LOADER_CHECK.replace("sys.argv_loader", repr(os.path.abspath(loader)))
+    n = 200
+    stdin = b"\n".join(packet_bytes(session, i) for i in range(n)).decode() + "\n"
+    r = subprocess.run([sys.executable, "-c", script, exp], input=stdin, capture_output=True,
+                       text=True, timeout=120, cwd=str(tmp_path))
+    assert r.returncode == 0, r.stderr[-2000:]
+    recs = [json.loads(line) for line in r.stdout.splitlines()]
+    got = np.array([[rec[n] for n in ROBOT.angle_names] for rec in recs])
+    ref = batch_angles(session, np.arange(n), jnp.float32)
+    assert np.max(np.abs(got - ref)) <= 1e-4
