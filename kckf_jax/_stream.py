@@ -299,10 +299,22 @@ def _compiled_step(params: Params, method: str):
         flatten, unflatten
 
 
+LOW_LATENCY_XLA_FLAGS = "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"
+
+
 def low_latency() -> None:
-    """Turn off JAX's asynchronous CPU dispatch: a call per packet then costs about a third
-    (``../shared/notes/jax-cpu-hazards.md``, item 2). Global; call before filtering."""
+    """Settings for one-packet-at-a-time filtering on a CPU. Global; call before filtering.
+
+    Turns off JAX's asynchronous CPU dispatch (a call per packet then costs about a third,
+    ``../shared/notes/jax-cpu-hazards.md`` item 2) and, if no computation has run yet, keeps
+    XLA's kernels on the calling thread (``LOW_LATENCY_XLA_FLAGS``; they are tiny, and a
+    hand-off to a thread pool costs more than it saves)."""
+    import os
+
     jax.config.update("jax_cpu_enable_async_dispatch", False)
+    flags = os.environ.get("XLA_FLAGS", "")
+    if "intra_op_parallelism_threads" not in flags:
+        os.environ["XLA_FLAGS"] = (flags + " " + LOW_LATENCY_XLA_FLAGS).strip()
 
 
 # ---------------------------------------------------------------------------- sources
@@ -340,13 +352,16 @@ class UdpSource(Source):
         self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, self.rcvbuf)
         self.sock.bind((self.host, self.port))
         self.rcvbuf_actual = self.sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF)
-        self.sock.settimeout(None)
+        self._timeout = None
 
     def read(self, timeout: float):
-        ready, _, _ = select.select([self.sock], [], [], timeout)
-        if not ready:
+        if timeout != self._timeout:
+            self.sock.settimeout(timeout)
+            self._timeout = timeout
+        try:
+            n, _ = self.sock.recvfrom_into(self._buf, len(self._buf), socket.MSG_TRUNC)
+        except TimeoutError:
             return None
-        n, _ = self.sock.recvfrom_into(self._buf, len(self._buf), socket.MSG_TRUNC)
         if n > self.max_bytes:
             return Oversized(n)
         return bytes(self._buf[:n])
@@ -500,8 +515,11 @@ def run_stream(source: Source, sink, sf: StreamingFilter, parser: PacketParser, 
                poll_s: float = 0.1) -> dict:
     """Read, filter and write until the source ends, ``max_packets`` packets were read,
     nothing arrived for ``idle_timeout`` seconds, or ``should_stop()``. Returns counts."""
+    import gc
+
     counts = {s: 0 for s in STATUSES}
     n = 0
+    gc.freeze()  # everything allocated so far is long-lived: keep it out of GC pauses
     last = time.monotonic()
     while not should_stop():
         if max_packets is not None and n >= max_packets:

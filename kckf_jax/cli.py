@@ -271,6 +271,7 @@ def cmd_stream(args) -> int:
         run_stream,
     )
 
+    low_latency()  # before the first computation: it sets XLA's thread flags
     method = _check_methods([args.method])[0]
     session = None
     if replay_path(args.source):
@@ -290,7 +291,6 @@ def cmd_stream(args) -> int:
     else:
         raise UsageError("the robot layout is unknown: give --meta meta.json, --params FILE or "
                          "a replay://SESSION source")
-    low_latency()
     sf = StreamingFilter(params, method, gap_s=args.gap, on_gap=args.on_gap)
     sf.warmup()  # compiled before the source opens: no early packet waits for XLA
     source = open_source(args.source, session, realtime=args.realtime)

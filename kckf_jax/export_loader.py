@@ -1,6 +1,7 @@
 """Run a step exported by ``kckf export``: needs only jax and numpy (copy this file anywhere).
 
     python export_loader.py step.jaxexport < packets.jsonl > estimates.jsonl
+    python export_loader.py step.jaxexport --udp 0.0.0.0:5005 --sink 127.0.0.1:5006
 
 As a library::
 
@@ -16,10 +17,16 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import sys
 
-import jax
-import numpy as np
+# One thread for XLA's tiny kernels (no thread hand-offs per packet), and synchronous dispatch.
+os.environ.setdefault("XLA_FLAGS", "--xla_cpu_multi_thread_eigen=false "
+                      "intra_op_parallelism_threads=1")
+import jax  # noqa: E402
+
+jax.config.update("jax_cpu_enable_async_dispatch", False)
+import numpy as np  # noqa: E402
 
 MAGIC = b"KCKF-JAXEXPORT/1\n"
 
@@ -32,6 +39,8 @@ class ExportedStep:
             n = int.from_bytes(f.read(8), "little")
             self.header = json.loads(f.read(n).decode())
             self.exported = jax.export.deserialize(bytearray(f.read()))
+        # One jitted callable, traced once (calling exported.call directly re-traces per call).
+        self._call = jax.jit(self.exported.call)
         h = self.header
         if h["dtype"] == "float64":
             jax.config.update("jax_enable_x64", True)
@@ -54,7 +63,7 @@ class ExportedStep:
         self._x[1:] = readings
         args = (self.state, self._x) if self.params is None else (self.params, self.state,
                                                                    self._x)
-        state, out = self.exported.call(*args)
+        state, out = self._call(*args)
         out = np.asarray(out)
         if out[-1] < 0.5:
             return None
@@ -74,22 +83,57 @@ class ExportedStep:
                                                           self.header["estimated"]) if e}}
 
 
+def _handle(step: ExportedStep, data: bytes | str) -> dict:
+    try:
+        packet = json.loads(data)
+        t = float(packet.pop("t"))
+        if not math.isfinite(t):
+            raise ValueError
+    except (ValueError, KeyError, TypeError, AttributeError):
+        return {"t": None, "status": "malformed"}
+    est = step.push(t, packet)
+    return est | {"status": "ok"} if est else {"t": t, "status": "skipped"}
+
+
 def main(argv=None) -> int:
-    argv = sys.argv[1:] if argv is None else argv
-    if len(argv) != 1:
-        print(__doc__.splitlines()[2].strip(), file=sys.stderr)
-        return 2
-    step = ExportedStep(argv[0])
-    for line in sys.stdin:
+    import argparse
+
+    ap = argparse.ArgumentParser(description="run a step exported by kckf export")
+    ap.add_argument("path")
+    ap.add_argument("--udp", help="HOST:PORT to receive packets on (default: stdin lines)")
+    ap.add_argument("--sink", help="HOST:PORT to send estimates to (default: stdout)")
+    ap.add_argument("--idle-timeout", type=float, default=None)
+    args = ap.parse_args(argv)
+    step = ExportedStep(args.path)
+    if args.udp is None:
+        for line in sys.stdin:
+            print(json.dumps(_handle(step, line)), flush=True)
+        return 0
+    import socket
+
+    host, port = args.udp.rsplit(":", 1)
+    rx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    rx.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 8 << 20)
+    rx.bind((host, int(port)))
+    rx.settimeout(args.idle_timeout)
+    tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sink = None
+    if args.sink:
+        sh, sp = args.sink.rsplit(":", 1)
+        sink = (sh, int(sp))
+    step.push_array(0.0, np.zeros(len(step.names)))  # compile before the first packet
+    step.reset()
+    print(f"export_loader: listening on udp://{host}:{port}", file=sys.stderr, flush=True)
+    while True:
         try:
-            packet = json.loads(line)
-            t = float(packet.pop("t"))
-        except (ValueError, KeyError, TypeError, AttributeError):
-            print(json.dumps({"status": "malformed"}))
-            continue
-        est = step.push(t, packet)
-        print(json.dumps(est | {"status": "ok"} if est else {"t": t, "status": "skipped"}))
-    return 0
+            data = rx.recv(65536)
+        except TimeoutError:
+            return 0
+        rec = json.dumps(_handle(step, data))
+        if sink:
+            tx.sendto(rec.encode(), sink)
+        else:
+            print(rec, flush=True)
 
 
 if __name__ == "__main__":

@@ -1,0 +1,230 @@
+"""Latency and throughput of live filtering, in process and end to end over UDP.
+
+    python benchmarks/stream_latency.py [--json]
+
+* In process: ``StreamingFilter.push`` of an already parsed packet (the step: host-to-device
+  copy of one reading vector, the jitted step, device-to-host copy of the estimates, the output
+  record), and parse + push; median and 99th percentile over 5,000 packets. The same for the
+  exported step (``kckf_jax/export_loader.py``'s ``push_array``).
+* End to end: a real ``kckf stream --source udp://... --sink udp://...`` process (and the
+  export loader's UDP mode) on loopback; each packet's send time against the arrival of its
+  estimate, paced at 100 Hz and 1 kHz.
+* Sustained rate: bursts of 2 s at increasing rates; the highest rate at which every packet got
+  its estimate.
+* The floor: a bare Python UDP echo process measured the same way (what the OS, the virtual
+  machine's wake-up from idle and Python's socket calls cost without any filtering).
+Simulated bench session (x, y, x, y), float32, async dispatch off (as ``kckf stream`` runs).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+
+import numpy as np
+
+sys.path.insert(0, os.path.dirname(__file__))
+from _machine import machine  # noqa: E402
+
+from kckf_jax import Params, simulate, write_session  # noqa: E402
+from kckf_jax._stream import PacketParser, StreamingFilter, low_latency  # noqa: E402
+
+ROOT = os.path.join(os.path.dirname(__file__), "..")
+LOADER = os.path.join(ROOT, "kckf_jax", "export_loader.py")
+
+
+def packets(s) -> list[bytes]:
+    out = []
+    for i in range(s.n_steps):
+        obj = {"t": float(s.t[i])}
+        for names, row in ((s.robot.gyro_names, s.gyro[i]), (s.robot.hall_names, s.hall_v[i])):
+            obj.update({n: None if np.isnan(v) else float(v) for n, v in zip(names, row)})
+        out.append(json.dumps(obj).encode())
+    return out
+
+
+def stats(us) -> dict:
+    us = np.asarray(us)
+    return {"median_us": round(float(np.median(us)), 1),
+            "p99_us": round(float(np.percentile(us, 99)), 1), "n": int(us.size)}
+
+
+def in_process(s, pk, export_path) -> dict:
+    low_latency()
+    sf = StreamingFilter(Params.paper_defaults(s.robot, s.hall_models))
+    sf.warmup()
+    parser = PacketParser(s.robot)
+    parsed = [parser.parse(p) for p in pk]
+    step_us, full_us = [], []
+    for p in parsed:
+        t0 = time.perf_counter()
+        sf.push(p)
+        step_us.append((time.perf_counter() - t0) * 1e6)
+    sf.reset()
+    for p in pk:
+        t0 = time.perf_counter()
+        sf.push(parser.parse(p))
+        full_us.append((time.perf_counter() - t0) * 1e6)
+    sys.path.insert(0, os.path.dirname(LOADER))
+    import export_loader
+
+    ex = export_loader.ExportedStep(export_path)
+    x = np.concatenate([s.gyro, s.hall_v], axis=1)
+    ex.push_array(0.0, x[0])
+    ex.reset()
+    ex_us = []
+    for i in range(s.n_steps):
+        t0 = time.perf_counter()
+        ex.push_array(float(s.t[i]), x[i])
+        ex_us.append((time.perf_counter() - t0) * 1e6)
+    return {"step": stats(step_us), "parse_and_step": stats(full_us),
+            "exported_step": stats(ex_us)}
+
+
+def _free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+#: A bare Python UDP echo: the floor that the OS, the VM and Python's socket calls set.
+ECHO = """
+import socket, sys
+rx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+rx.bind(("127.0.0.1", int(sys.argv[1])))
+tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+print("listening", file=sys.stderr, flush=True)
+while True:
+    tx.sendto(rx.recv(65536), ("127.0.0.1", int(sys.argv[2])))
+"""
+
+
+def _server(kind: str, session_dir: str, export_path: str, port: int, sink_port: int):
+    if kind == "echo (floor)":
+        cmd = [sys.executable, "-c", ECHO, str(port), str(sink_port)]
+    elif kind == "kckf stream":
+        cmd = [sys.executable, "-m", "kckf_jax", "stream", "--source",
+               f"udp://127.0.0.1:{port}", "--sink", f"udp://127.0.0.1:{sink_port}", "--meta",
+               os.path.join(session_dir, "meta.json"), "--quiet"]
+    else:
+        cmd = [sys.executable, LOADER, export_path, "--udp", f"127.0.0.1:{port}", "--sink",
+               f"127.0.0.1:{sink_port}"]
+    proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True)
+    while "listening" not in (line := proc.stderr.readline()):
+        if proc.poll() is not None:
+            raise RuntimeError(f"{kind} did not start: {line}{proc.stderr.read()}")
+    return proc
+
+
+def run_rate(pk, port, rx, rate_hz, n, t_offset) -> tuple[list, int]:
+    """Send ``n`` packets at ``rate_hz`` (busy-wait pacing); latency per estimate (us)."""
+    tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sent = {}
+    lat = []
+    period = 1.0 / rate_hz
+    start = time.perf_counter()
+    received = 0
+    for i in range(n):
+        obj = json.loads(pk[i % len(pk)])
+        obj["t"] = t_offset + i * period  # strictly increasing across runs
+        data = json.dumps(obj).encode()
+        due = start + i * period
+        while time.perf_counter() < due:
+            if due - time.perf_counter() > 0.0003:
+                time.sleep(0.0001)  # do not busy-wait a core away from the filter
+            try:
+                while True:
+                    got = json.loads(rx.recv(65536, socket.MSG_DONTWAIT))
+                    received += 1
+                    if got.get("t") in sent:
+                        lat.append((time.perf_counter() - sent.pop(got["t"])) * 1e6)
+            except BlockingIOError:
+                pass
+        sent[obj["t"]] = time.perf_counter()
+        tx.sendto(data, ("127.0.0.1", port))
+    deadline = time.perf_counter() + 2.0
+    while time.perf_counter() < deadline and received < n:
+        try:
+            got = json.loads(rx.recv(65536, socket.MSG_DONTWAIT))
+            received += 1
+            if got.get("t") in sent:
+                lat.append((time.perf_counter() - sent.pop(got["t"])) * 1e6)
+        except BlockingIOError:
+            time.sleep(0.0002)
+    tx.close()
+    return lat, received
+
+
+def end_to_end(kind, pk, session_dir, export_path) -> dict:
+    port, sink_port = _free_port(), _free_port()
+    rx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    rx.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 8 << 20)
+    rx.bind(("127.0.0.1", sink_port))
+    proc = _server(kind, session_dir, export_path, port, sink_port)
+    out, t_off = {}, 0.0
+    try:
+        run_rate(pk, port, rx, 200, 200, t_off)  # warm the path
+        t_off += 10
+        for rate in (100, 1000):
+            lat, got = run_rate(pk, port, rx, rate, 2000 if rate == 1000 else 500, t_off)
+            t_off += 10 + 2000 / rate
+            out[f"{rate}_hz"] = stats(lat) | {"lost": (2000 if rate == 1000 else 500) - got}
+        best = 0
+        for rate in (2000, 5000, 10000, 20000, 40000):
+            n = 2 * rate
+            _, got = run_rate(pk, port, rx, rate, n, t_off)
+            t_off += 10 + n / rate
+            out[f"burst_{rate}_hz_received"] = f"{got}/{n}"
+            if got == n:
+                best = rate
+            else:
+                break
+        out["sustained_no_loss_hz"] = best
+    finally:
+        proc.terminate()
+        proc.wait(timeout=30)
+        rx.close()
+    return out
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--json", action="store_true")
+    args = ap.parse_args()
+    low_latency()  # before any computation, as kckf stream does
+    s = simulate("x,y,x,y", "cyclic", seed=3, duration_s=50.0, drop_prob=0.01)
+    tmp = tempfile.mkdtemp(prefix="kckf-bench-")
+    session_dir = os.path.join(tmp, "s")
+    write_session(s, session_dir)
+    export_path = os.path.join(tmp, "step.jaxexport")
+    from kckf_jax.cli import main as kckf
+
+    assert kckf(["export", "--meta", os.path.join(session_dir, "meta.json"), "-o",
+                 export_path, "--quiet"]) == 0
+    pk = packets(s)
+    doc = {"benchmark": "stream_latency", "machine": machine(), "date": time.strftime("%Y-%m-%d"),
+           "in_process": in_process(s, pk, export_path),
+           "udp": {k: end_to_end(k, pk, session_dir, export_path)
+                   for k in ("kckf stream", "exported step", "echo (floor)")}}
+    if args.json:
+        print(json.dumps(doc, indent=2))
+        return
+    ip = doc["in_process"]
+    for k, v in ip.items():
+        print(f"in process, {k}: median {v['median_us']} us, p99 {v['p99_us']} us")
+    for kind, d in doc["udp"].items():
+        for rate in ("100_hz", "1000_hz"):
+            print(f"{kind}, UDP loopback at {rate}: median {d[rate]['median_us']} us, p99 "
+                  f"{d[rate]['p99_us']} us, lost {d[rate]['lost']}")
+        print(f"{kind}: sustained with no loss up to {d['sustained_no_loss_hz']} packets/s "
+              f"({', '.join(f'{k}: {v}' for k, v in d.items() if k.startswith('burst'))})")
+
+
+if __name__ == "__main__":
+    main()
