@@ -169,17 +169,21 @@ def fused_pairs(
     return h, 1.0 / Ws, ok
 
 
-def _kalman_step(params: Params, state: FilterState, inputs: SensorSeries, method: str):
+def block_inputs(params: Params, st, gyro_hold: Float[Array, " G"], inputs: SensorSeries):
+    """One row's inputs laid out by axis block (``_model.Structure``).
+
+    Returns ``(dt, rates, noise, hb, rb, vb)``: the time step; the rates of the previous row
+    (``P x (m + 1)``, Eqs. 2, 9, 10); the process noise ``(alpha, beta, gamma)`` (Eq. 13,
+    each ``P x (m + 1)``); and each block joint's fused Hall reading (rad), its variance and
+    whether it exists (``P x m``, Eqs. 1, 5, 8, 20).
+    """
     robot = params.robot
-    st = structure(robot, method)
-    dtype = state.z.dtype
+    dtype = gyro_hold.dtype
     dt = inputs.dt.astype(dtype)
-    # Block inputs: rates of the previous row (Eqs. 2, 9, 10) and process noise (Eq. 13).
     plus, minus = robot.rate_pairs
-    rates = block_gather(st, state.gyro_hold[plus] - state.gyro_hold[minus])
+    rates = block_gather(st, gyro_hold[plus] - gyro_hold[minus])
     noise = tuple(block_gather(st, x)
                   for x in q_blocks(params.q, params.angle_rw, params.bias_rw, dt))
-    # Hall readings through Eq. 1, both sides of a joint fused, laid out by block.
     angle, r, valid = hall_measurements(params, inputs.hall_v.astype(dtype))
     h, rh, ok = fused_pairs(angle, r, valid)
     ji = st.joint_index
@@ -187,33 +191,47 @@ def _kalman_step(params: Params, state: FilterState, inputs: SensorSeries, metho
     hb = jnp.where(pad, 0.0, h[np.maximum(ji, 0)])
     rb = jnp.where(pad, 1.0, rh[np.maximum(ji, 0)])
     vb = jnp.where(pad, False, ok[np.maximum(ji, 0)])
+    return dt, rates, noise, hb, rb, vb
 
-    def block(z, P, rates, alpha, beta, gamma, hb, rb, vb):
-        # Predict y = [z, e] (Eqs. 3, 9-13).
-        y, S = predicted_moments(st, z, P, rates, (alpha, beta, gamma), dt)
-        # KCKF: condition on the perfect measurement e = sum theta - phi = 0 (Eqs. 15-19).
-        for i in range(st.n_e):
-            e = st.n_z + i
-            y, S = _scalar_update(y, S, e, -y[e], jnp.zeros((), dtype), dt > 0)
-        z, P = y[: st.n_z], S[: st.n_z, : st.n_z]
-        # Hall updates, one joint at a time (Eqs. 4-5, 8, 20).
-        for i in range(st.m):
-            z, P = _scalar_update(z, P, i, hb[i] - z[i], rb[i], vb[i])
-        return z, 0.5 * (P + P.T)
 
-    z, P = jax.vmap(block)(state.z, state.P, rates, *noise, hb, rb, vb)
-    gyro = inputs.gyro.astype(dtype)
-    hold = jnp.where(jnp.isfinite(gyro), gyro, state.gyro_hold)
-    # Back to the paper's coordinates: xb = T z per block, then block slots to angle order.
-    T = jnp.asarray(st.T, dtype)
+def block_update(st, z, P, rates, alpha, beta, gamma, hb, rb, vb, dt):
+    """One axis block's predict and update (the filter's arithmetic, for one block).
+
+    Predict ``y = [z, e]`` (Eqs. 3, 9-13); for the KCKF condition on the perfect measurement
+    ``e = sum theta - phi = 0`` (Eqs. 15-19); then one scalar Joseph update per joint with its
+    fused Hall reading (Eqs. 4-5, 8, 20). For fixed ``P``, ``dt`` and masks the new ``z`` is
+    linear in ``(z, rates, hb)``: the fast paths (``_fast.py``) use exactly that.
+    """
+    y, S = predicted_moments(st, z, P, rates, (alpha, beta, gamma), dt)
+    for i in range(st.n_e):
+        e = st.n_z + i
+        y, S = _scalar_update(y, S, e, -y[e], jnp.zeros((), z.dtype), dt > 0)
+    z, P = y[: st.n_z], S[: st.n_z, : st.n_z]
+    for i in range(st.m):
+        z, P = _scalar_update(z, P, i, hb[i] - z[i], rb[i], vb[i])
+    return z, 0.5 * (P + P.T)
+
+
+def block_estimate(st, z: Float[Array, "P Nz"], P: Float[Array, "P Nz Nz"]) -> Estimate:
+    """Angles, their standard deviations and biases from the block states, in angle order."""
+    T = jnp.asarray(st.T, z.dtype)
     m1 = st.m + 1
-    xb = jnp.sum(T[None] * z[:, None, :], axis=2)  # (P, 2m + 2)
+    xb = jnp.sum(T[None] * z[:, None, :], axis=2)  # (P, 2m + 2): the paper's x per block
     Ta = T[:m1]
     TaP = jnp.sum(Ta[None, :, :, None] * P[:, None, :, :], axis=2)  # (P, m1, Nz)
     var = jnp.sum(TaP * Ta[None], axis=2)
     bo, so = st.block_of, st.slot_of
-    est = Estimate(xb[bo, so], jnp.sqrt(jnp.maximum(var[bo, so], 0.0)), xb[bo, m1 + so])
-    return FilterState(z, P, hold), est
+    return Estimate(xb[bo, so], jnp.sqrt(jnp.maximum(var[bo, so], 0.0)), xb[bo, m1 + so])
+
+
+def _kalman_step(params: Params, state: FilterState, inputs: SensorSeries, method: str):
+    st = structure(params.robot, method)
+    dt, rates, noise, hb, rb, vb = block_inputs(params, st, state.gyro_hold, inputs)
+    z, P = jax.vmap(lambda *a: block_update(st, *a, dt))(state.z, state.P, rates, *noise, hb,
+                                                           rb, vb)
+    gyro = inputs.gyro.astype(state.z.dtype)
+    hold = jnp.where(jnp.isfinite(gyro), gyro, state.gyro_hold)
+    return FilterState(z, P, hold), block_estimate(st, z, P)
 
 
 def _baseline_step(params: Params, state: FilterState, inputs: SensorSeries, method: str):
@@ -292,18 +310,24 @@ def scan_filter(
     return final, est
 
 
-@eqx.filter_jit
 def run_filter(
-    params: Params, series: SensorSeries, method: str = "kckf", state: FilterState | None = None
+    params: Params, series: SensorSeries, method: str = "kckf", state: FilterState | None = None,
+    path: str = "auto",
 ) -> tuple[FilterState, Estimate]:
-    """Filter a whole recording: ``lax.scan`` of ``step`` over the rows of ``series``.
+    """Filter a whole recording: ``lax.scan`` of ``step`` over the rows of ``series``, jitted.
 
     Args:
         params: the filter parameters (their dtype sets the computation's precision).
-        series: one trial, ``dt`` of shape (T,). Use ``jax.vmap`` over a batch of padded
-            trials (``filter_batch`` does it for you).
+        series: one trial, ``dt`` of shape (T,). Use ``filter_batch`` for a batch of padded
+            trials (``jax.vmap``).
         method: one of ``METHODS``.
         state: the starting state (default ``init_state(params, method)``).
+        path: how to compute it (all give the same estimates; ``docs/performance.md``):
+            ``"sequential"`` (the scan of ``step``), ``"steady"`` (constant time step, no
+            missing reading, constant Hall noise: the converged gain after the first rows),
+            ``"parallel"`` (covariance scan, then the mean by associative scan), or
+            ``"auto"`` (default: ``"steady"`` where it applies, else the sequential path on a
+            CPU and the parallel path on an accelerator).
 
     Returns:
         The final state and an ``Estimate`` with a leading time axis.
@@ -316,13 +340,45 @@ def run_filter(
         >>> est.angles.shape
         (5, 4)
     """
+    _check_method(method)
+    from ._fast import choose_path
+
+    return _run_filter(params, series, method, state, choose_path(params, series, method, path))
+
+
+@eqx.filter_jit
+def _run_filter(params, series, method, state, path):
+    if path == "steady":
+        from ._fast import steady_filter
+
+        return steady_filter(params, series, method, state)
+    if path == "parallel":
+        from ._fast import parallel_filter
+
+        return parallel_filter(params, series, method, state)
     return scan_filter(params, series, method, state)
 
 
-def filter_batch(params: Params, series: SensorSeries, method: str = "kckf") -> Estimate:
+def filter_batch(params: Params, series: SensorSeries, method: str = "kckf",
+                 path: str = "auto") -> Estimate:
     """``run_filter`` over a batch of trials (leading axis ``B``), padded to one length."""
     _check_method(method)
-    return jax.vmap(lambda s: run_filter(params, s, method)[1])(series)
+    from ._fast import choose_path
+
+    return _filter_batch(params, series, method, choose_path(params, series, method, path))
+
+
+@eqx.filter_jit
+def _filter_batch(params, series, method, path):
+    if path == "steady":
+        from ._fast import steady_batch
+
+        return steady_batch(params, series, method)
+    if path == "parallel":
+        from ._fast import parallel_filter
+
+        return jax.vmap(lambda s: parallel_filter(params, s, method)[1])(series)
+    return jax.vmap(lambda s: scan_filter(params, s, method)[1])(series)
 
 
 def pad_series(series: list[SensorSeries], length: int | None = None) -> SensorSeries:

@@ -26,6 +26,7 @@ import numpy as np
 import optax
 from jaxtyping import Array, Bool, Float
 
+from ._fast import STEADY_STEPS, steady_batch
 from ._filter import SensorSeries, pad_series, scan_filter
 from ._params import _LEAVES, Params, params_to_dict, with_floors
 from ._session import Session
@@ -35,17 +36,35 @@ RAD2DEG = 180.0 / math.pi
 
 # ----------------------------------------------------------------------------- data
 class Batch(eqx.Module):
-    """Padded trials for the loss: inputs, ground truth (0 where missing) and its mask."""
+    """Padded trials for the loss: inputs, ground truth (0 where missing) and its mask.
+
+    ``regular`` (static) records that every trial has the same constant time step, the same
+    length and no missing reading: the loss may then take the steady path (``_fast.py``).
+    """
 
     series: SensorSeries
     truth: Float[Array, "B T K"]
     mask: Bool[Array, "B T K"]
+    regular: bool = eqx.field(static=True, default=False)
+
+
+def _is_regular(series: Sequence[SensorSeries], robot) -> bool:
+    used = np.asarray(robot.rate_pairs).ravel()
+    n = {int(np.shape(s.dt)[0]) for s in series}
+    if len(n) != 1:
+        return False
+    dts = [np.asarray(s.dt, np.float64) for s in series]
+    step = dts[0][1] if dts[0].shape[0] > 1 else 0.0
+    return bool(step > 0 and all(
+        np.max(np.abs(dt[1:] - step)) <= 1e-9 and not np.isnan(np.asarray(s.gyro)[:, used]).any()
+        and not np.isnan(np.asarray(s.hall_v)).any() for dt, s in zip(dts, series)))
 
 
 def make_batch(sessions: Sequence[Session], dtype=None, burn_in_s: float = 0.0,
                multiple_of: int = 1) -> Batch:
     """Stack ``sessions`` into a ``Batch``; the trial count is padded to ``multiple_of``
-    (for sharding) with empty trials that have no truth, so they add nothing to the loss."""
+    (for sharding) with copies of the first trial that have no truth, so they add nothing to
+    the loss (and keep a regular batch regular)."""
     if not sessions:
         raise ValueError("no sessions to fit on")
     dtype = dtype or jnp.asarray(0.0).dtype
@@ -61,9 +80,7 @@ def make_batch(sessions: Sequence[Session], dtype=None, burn_in_s: float = 0.0,
     T = max(s.n_steps for s in sessions)
     K = sessions[0].robot.n_angles
     n_pad = (-len(sessions)) % multiple_of
-    empty = SensorSeries(np.zeros(1), np.full((1, series[0].gyro.shape[1]), np.nan),
-                         np.full((1, series[0].hall_v.shape[1]), np.nan))
-    batch = pad_series(series + [empty] * n_pad, length=T)
+    batch = pad_series(series + [series[0]] * n_pad, length=T)
     truth = np.full((len(series) + n_pad, T, K), np.nan)
     for b, tr in enumerate(truths):
         truth[b, : tr.shape[0]] = tr
@@ -72,6 +89,7 @@ def make_batch(sessions: Sequence[Session], dtype=None, burn_in_s: float = 0.0,
         series=jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype), batch),
         truth=jnp.asarray(np.where(mask, truth, 0.0), dtype),
         mask=jnp.asarray(mask),
+        regular=_is_regular(series, sessions[0].robot),
     )
 
 
@@ -91,11 +109,17 @@ def per_angle_rmse(params: Params, batch: Batch, method: str = "kckf",
                    remat_chunk: int | None = None) -> tuple[Array, Array]:
     """Pooled RMSE (rad) of every angle over all trials and steps with truth, and the counts.
 
+    A regular batch with the constant Hall noise model takes the steady path (the same
+    estimates, ``_fast.py``); anything else the sequential scan.
+
     NaN-free by construction: missing truth is masked before it is subtracted, and the square
     root is guarded, so neither the loss nor its gradient is NaN when truth is missing.
     """
-    est = jax.vmap(lambda s: scan_filter(params, s, method, remat_chunk=remat_chunk)[1])(
-        batch.series)
+    if batch.regular and params.hall_noise == "angle" and batch.truth.shape[1] > STEADY_STEPS:
+        est = steady_batch(params, batch.series, method, remat_chunk)
+    else:
+        est = jax.vmap(lambda s: scan_filter(params, s, method, remat_chunk=remat_chunk)[1])(
+            batch.series)
     err = jnp.where(batch.mask, est.angles - batch.truth, 0.0)
     n = jnp.sum(batch.mask, axis=(0, 1))
     mse = jnp.sum(err**2, axis=(0, 1)) / jnp.maximum(n, 1)

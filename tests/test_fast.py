@@ -1,0 +1,80 @@
+"""The faster paths agree with the sequential filter (1e-8 rad in float64) and fall back."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from kckf_jax import Params, Robot, filter_batch, run_filter, simulate
+from kckf_jax._fast import STEADY_STEPS, choose_path, steady_conditions
+from kckf_jax._filter import SensorSeries
+
+
+def regular(robot, seed, T, dtype=jnp.float64, kind="cyclic"):
+    """A session with an exactly constant time step and no missing reading."""
+    s = simulate(robot, kind, seed=seed, duration_s=T / 100.0)
+    dt = np.r_[0.0, np.full(T - 1, 0.01)]
+    return s, SensorSeries(jnp.asarray(dt, dtype), jnp.asarray(s.gyro, dtype),
+                           jnp.asarray(s.hall_v, dtype))
+
+
+@pytest.mark.parametrize("spec", ["x,y,x,y", "xyz,xyz,xyz,xyz", "xz,y"])
+@pytest.mark.parametrize("method", ["kckf", "kf"])
+def test_steady_and_parallel_equal_sequential_float64(spec, method):
+    robot = Robot.from_spec(spec)
+    s, series = regular(robot, 1, STEADY_STEPS + 1500)
+    params = Params.paper_defaults(robot, s.hall_models, dtype=jnp.float64)
+    assert choose_path(params, series, method) == "steady"
+    _, ref = run_filter(params, series, method, path="sequential")
+    for path in ("steady", "parallel"):
+        final, est = run_filter(params, series, method, path=path)
+        np.testing.assert_allclose(est.angles, ref.angles, atol=1e-8, rtol=0)
+        np.testing.assert_allclose(est.bias, ref.bias, atol=1e-8, rtol=0)
+        np.testing.assert_allclose(est.angle_std, ref.angle_std, atol=1e-8, rtol=1e-6)
+
+
+def test_parallel_handles_missing_readings_uneven_steps_and_voltage_noise():
+    robot = Robot.from_spec("x,y,x,y")
+    s = simulate(robot, "human", seed=4, duration_s=30.0, drop_prob=0.05)
+    params = Params.from_physical(robot, hall_models=s.hall_models, hall_noise="voltage",
+                                  dtype=jnp.float64)
+    series = SensorSeries(jnp.asarray(s.dt()), jnp.asarray(s.gyro), jnp.asarray(s.hall_v))
+    assert steady_conditions(params, series, "kckf") is not None
+    assert choose_path(params, series, "kckf") == "sequential"
+    _, ref = run_filter(params, series, "kckf", path="sequential")
+    _, par = run_filter(params, series, "kckf", path="parallel")
+    np.testing.assert_allclose(par.angles, ref.angles, atol=1e-8, rtol=0)
+    with pytest.raises(ValueError, match="does not apply: the voltage noise model"):
+        run_filter(params, series, "kckf", path="steady")
+
+
+def test_steady_falls_back_when_the_covariance_has_not_converged():
+    """Tiny process noise and a huge prior: still moving after STEADY_STEPS rows, so the
+    compiled function takes the sequential branch (and the result is the sequential one)."""
+    robot = Robot.from_spec("x,y")
+    s, series = regular(robot, 2, STEADY_STEPS + 500)
+    params = Params.from_physical(robot, q=1e-16, p0_bias=0.5, hall_models=s.hall_models,
+                                  dtype=jnp.float64)
+    _, ref = run_filter(params, series, "kckf", path="sequential")
+    _, est = run_filter(params, series, "kckf", path="steady")
+    np.testing.assert_array_equal(np.asarray(est.angles), np.asarray(ref.angles))
+
+
+def test_batch_steady_equals_sequential_float32_and_grad_is_finite():
+    robot = Robot.from_spec("x,y,x,y")
+    T = STEADY_STEPS + 300
+    trials = [regular(robot, seed, T, jnp.float32)[1] for seed in (5, 6, 7)]
+    batch = jax.tree_util.tree_map(lambda *x: jnp.stack(x), *trials)
+    params = Params.paper_defaults(robot, dtype=jnp.float32)
+    assert choose_path(params, batch, "kckf") == "steady"
+    seq = filter_batch(params, batch, "kckf", path="sequential")
+    fast = filter_batch(params, batch, "kckf")
+    np.testing.assert_allclose(fast.angles, seq.angles, atol=1e-4, rtol=0)
+
+
+def test_unknown_path():
+    robot = Robot.from_spec("x")
+    with pytest.raises(ValueError, match="path must be one of"):
+        run_filter(Params.paper_defaults(robot), regular(robot, 1, 10)[1], path="fast")
