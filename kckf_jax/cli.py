@@ -345,6 +345,44 @@ def cmd_export(args) -> int:
     return 0
 
 
+def cmd_experiment(args) -> int:
+    t0 = time.perf_counter()
+    if args.name == "arm-imu":
+        from .filters import arm_imu_experiment
+
+        result = arm_imu_experiment(seed=args.seed)
+    else:
+        from .filters.markov import markov_experiment
+
+        if args.runs < 1:
+            raise UsageError(f"--runs {args.runs}: expected at least 1")
+        result = markov_experiment(runs=args.runs, seed=args.seed)
+    result = _jsonable(result)
+    if args.json:
+        print(json.dumps(result))
+    else:
+        _say(args, json.dumps(result, indent=2))
+    _say(args, f"kckf experiment {args.name}: {time.perf_counter() - t0:.1f} s")
+    return 0
+
+
+def _jsonable(x):
+    """Plain JSON types (NumPy and JAX scalars and arrays become floats and lists)."""
+    import numpy as np
+
+    if isinstance(x, dict):
+        return {str(k): _jsonable(v) for k, v in x.items()}
+    if isinstance(x, list | tuple):
+        return [_jsonable(v) for v in x]
+    if hasattr(x, "tolist"):
+        return _jsonable(np.asarray(x).tolist())
+    if isinstance(x, bool | int | str) or x is None:
+        return x
+    if isinstance(x, float):
+        return x
+    return float(x)
+
+
 def data_dir() -> str:
     """The shipped sample sessions: inside the installed package, or ``data/`` of a checkout."""
     here = os.path.dirname(os.path.abspath(__file__))
@@ -525,6 +563,18 @@ def build_parser() -> argparse.ArgumentParser:
                    help="take the parameters as an input instead of baking them in")
     x.add_argument("--dtype", choices=("float32", "float64"), default="float32")
     x.set_defaults(func=cmd_export)
+
+    xp = sub.add_parser("experiment", parents=[common],
+                        help="the other papers' systems: arm exoskeleton + IMU, Markovian KF")
+    xsub = xp.add_subparsers(dest="name", metavar="NAME", required=True)
+    for name, text in (("arm-imu", "arm exoskeleton + IMU fusion (Chen et al.)"),
+                       ("markov", "Markovian (MJLS) KF for a lower-limb exoskeleton, Fig. 9")):
+        e2 = xsub.add_parser(name, parents=[common], help=text)
+        e2.add_argument("--seed", type=int, default=0)
+        e2.add_argument("--json", action="store_true", help="JSON on stdout")
+        if name == "markov":
+            e2.add_argument("--runs", type=int, default=20, help="Monte Carlo runs per level")
+        e2.set_defaults(func=cmd_experiment)
 
     o = sub.add_parser("observability", parents=[common],
                        help="observability ranks of the standard KF and the KCKF")
