@@ -11,14 +11,13 @@ import subprocess
 import sys
 import time
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from kckf_jax import Params, Robot, run_filter, session_series, simulate, write_session
+from kckf_jax import Params, Robot, run_filter, simulate, write_session
 from kckf_jax._filter import SensorSeries
 from kckf_jax._stream import USED, PacketParser, StreamingFilter
 
