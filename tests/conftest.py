@@ -16,7 +16,16 @@ jax.config.update("jax_enable_x64", True)
 sys.path.insert(0, os.path.dirname(__file__))
 
 with install_import_hook("kckf_jax", "_typecheck.typechecker"):
+    import importlib  # noqa: E402
+    import pkgutil  # noqa: E402
+
     import kckf_jax  # noqa: E402, F401
+
+    # Every module of the package, so that none escapes the hook by being imported later
+    # (export_loader changes JAX's global settings and __main__ runs the CLI when imported).
+    for _mod in pkgutil.walk_packages(kckf_jax.__path__, "kckf_jax."):
+        if not _mod.name.endswith(("export_loader", "__main__")):
+            importlib.import_module(_mod.name)
 
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402

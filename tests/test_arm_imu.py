@@ -15,27 +15,25 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from jaxtyping import TypeCheckError, install_import_hook
+from jaxtyping import TypeCheckError
 
-# conftest.py's import hook covers the modules imported while it is installed; the filters
-# subpackage is first imported here, so it gets the same runtime shape checking.
-with install_import_hook("kckf_jax.filters", "_typecheck.typechecker"):
-    from kckf_jax.filters import (
-        ArmImuParams,
-        ArmImuSeries,
-        ArmSimConfig,
-        arm_imu_batch,
-        arm_imu_experiment,
-        arm_imu_init,
-        arm_imu_series,
-        arm_imu_step,
-        first_valid_rotation,
-        pad_arm_imu,
-        remove_gyro_bias,
-        run_arm_imu,
-        scan_arm_imu,
-        simulate_arm_trial,
-    )
+# conftest.py imports every module of the package under its runtime shape-checking hook.
+from kckf_jax.filters import (
+    ArmImuParams,
+    ArmImuSeries,
+    ArmSimConfig,
+    arm_imu_batch,
+    arm_imu_experiment,
+    arm_imu_init,
+    arm_imu_series,
+    arm_imu_step,
+    first_valid_rotation,
+    pad_arm_imu,
+    remove_gyro_bias,
+    run_arm_imu,
+    scan_arm_imu,
+    simulate_arm_trial,
+)
 
 DEG = np.pi / 180
 G = 9.81

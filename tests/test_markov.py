@@ -247,6 +247,9 @@ def test_check_grads(short_trials):
     truth = jnp.asarray(short_trials.angles[:1, 60:80])
 
     def f(log_sigma_a, log_sigma_enc, log_tau_g):
+        # check_grads evaluates with NumPy perturbations; the leaves are JAX arrays.
+        log_sigma_a, log_sigma_enc, log_tau_g = map(jnp.asarray, (log_sigma_a, log_sigma_enc,
+                                                                  log_tau_g))
         p = MarkovParams(params.log_zeta, params.log_sigma_g, params.log_sigma_bg, log_sigma_a,
                          log_tau_g, log_sigma_enc, params.log_p0_angle, params.log_p0_bias)
         return markov_loss(p, series, truth, "mkf")
