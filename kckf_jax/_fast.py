@@ -44,10 +44,12 @@ from ._filter import (
     block_estimate,
     block_inputs,
     block_update,
+    fused_pairs,
+    hall_measurements,
     init_state,
     scan_filter,
 )
-from ._model import FILTER_METHODS, structure
+from ._model import FILTER_METHODS, block_gather, structure
 from ._params import Params
 
 #: Rows the steady path filters in full before it switches to the converged map (the paper's
@@ -117,6 +119,26 @@ def _inputs(params: Params, st, series: SensorSeries, hold0: jax.Array):
     held = _held_gyro(series.gyro, hold0)
     prev_hold = jnp.concatenate([hold0[None], held[:-1]], axis=0)
     return jax.vmap(lambda g, row: block_inputs(params, st, g, row))(prev_hold, series), held
+
+
+def _last_finite(gyro: jax.Array, hold0: jax.Array) -> jax.Array:
+    """Each channel's last finite value over the rows (``hold0`` where there is none)."""
+    T = gyro.shape[0]
+    idx = jnp.max(jnp.where(jnp.isfinite(gyro), jnp.arange(T)[:, None], -1), axis=0)
+    last = gyro[jnp.maximum(idx, 0), jnp.arange(gyro.shape[1])]
+    return jnp.where(idx >= 0, last, hold0)
+
+
+def _rates_and_readings(params: Params, st, series: SensorSeries, hold0: jax.Array):
+    """For rows with every used gyro reading present (the steady path): each row's block
+    rates from the previous row and its fused Hall readings, ``(T, P, m + 1)`` and
+    ``(T, P, m)``; vectorised over rows, without the general path's forward fill."""
+    plus, minus = params.robot.rate_pairs
+    prev = jnp.concatenate([hold0[None], series.gyro[:-1]], axis=0)
+    rates = jax.vmap(lambda g: block_gather(st, g[plus] - g[minus]))(prev)
+    h, _, _ = jax.vmap(lambda v: fused_pairs(*hall_measurements(params, v)))(series.hall_v)
+    ji = st.joint_index
+    return rates, jnp.where(ji < 0, 0.0, h[:, np.maximum(ji, 0)])
 
 
 def _covariance_phase(params: Params, st, P0, head):
@@ -196,8 +218,11 @@ def _steady_parts(params: Params, series: SensorSeries, method: str, state: Filt
     head = jax.tree_util.tree_map(lambda x: x[:L], series)
     tail = jax.tree_util.tree_map(lambda x: x[L:], series)
     mid, est_head = scan_filter(params, head, method, state, remat_chunk)
-    (dt, rates, noise, hb, rb, vb), held = _inputs(params, st, tail, mid.gyro_hold)
-    row0 = jax.tree_util.tree_map(lambda x: x[0], (dt, rates, noise, hb, rb, vb))
+    (row0, _) = _inputs(params, st, jax.tree_util.tree_map(lambda x: x[:1], tail),
+                        mid.gyro_hold)
+    row0 = jax.tree_util.tree_map(lambda x: x[0], row0)
+    rates, hb = _rates_and_readings(params, st, tail, mid.gyro_hold)
+    held = _last_finite(tail.gyro, mid.gyro_hold)[None]
     P_ss, A, B, C = _maps(params, st, mid.P, row0)
     change = jnp.max(jnp.abs(P_ss - mid.P)) / jnp.max(jnp.abs(P_ss))
     w = jnp.concatenate([rates, hb], axis=2)
@@ -273,7 +298,7 @@ def steady_batch(params: Params, series: SensorSeries, method: str = "kckf",
     bo, so = st.block_of, st.slot_of
 
     def one(trial):
-        (_, r, _, h, _, _), _ = _inputs(params, st, trial, state.gyro_hold)
+        r, h = _rates_and_readings(params, st, trial, state.gyro_hold)
         w = jnp.concatenate([r, h], axis=2)
         z_head = _mean_scan(As, BCs, w[:L], state.z, parallel=False)
         z = jnp.concatenate([z_head, _mean_scan(A, BC, w[L:], z_head[-1], parallel=False)])
