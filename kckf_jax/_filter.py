@@ -124,7 +124,24 @@ def _scalar_update(
     innovation variance ``s`` is not positive (e.g. the constraint at ``dt = 0``).
     """
     c = P[:, index]
-    s = c[index] + r
+    return joseph_rank_one(z, P, c, c[index] + r, innovation, valid)
+
+
+def joseph_rank_one(
+    z: Float[Array, " N"],
+    P: Float[Array, "N N"],
+    c: Float[Array, " N"],
+    s: Float[Array, ""],
+    innovation: Float[Array, ""],
+    valid: Bool[Array, ""],
+) -> tuple[Float[Array, " N"], Float[Array, "N N"]]:
+    """A scalar measurement update in Joseph form, for any filter of the package.
+
+    For a row ``h`` with noise ``r``: ``c = P h``, ``s = h' c + r``, ``k = c / s`` and
+    ``P+ = (I - k h') P (I - k h')' + r k k' = P - k c' - c k' + s k k'``; the estimate moves by
+    ``k * innovation``. Skipped (exactly, and with finite gradients) when ``valid`` is false or
+    ``s`` is not positive.
+    """
     ok = valid & (s > 0)
     k = jnp.where(ok, c / jnp.where(ok, s, 1.0), 0.0)
     z = z + k * jnp.where(ok, innovation, 0.0)

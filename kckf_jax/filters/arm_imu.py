@@ -85,6 +85,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
+from .._filter import joseph_rank_one
+
 DEG = np.pi / 180.0
 GRAVITY_MPS2 = 9.81
 #: Orientation readings further than this from the reference are dropped (rotation-vector chart).
@@ -374,12 +376,7 @@ def _scalar_update(
     not positive.
     """
     c = P[:, i]
-    s = c[i] + r
-    ok = valid & (s > 0)
-    k = jnp.where(ok, c / jnp.where(ok, s, 1.0), 0.0)
-    x = x + k * jnp.where(ok, y - x[i], 0.0)
-    P = P - jnp.outer(k, c) - jnp.outer(c, k) + s * jnp.outer(k, k)
-    return x, P
+    return joseph_rank_one(x, P, c, c[i] + r, y - x[i], valid)
 
 
 def _symmetrise(P):

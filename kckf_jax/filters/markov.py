@@ -73,6 +73,7 @@ import numpy as np
 import optax
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
+from .._filter import joseph_rank_one
 from .gait_sim import (
     G_M_S2,
     JOINTS,
@@ -422,12 +423,7 @@ def scalar_update(
     ``P+ = (I - k h') P (I - k h')' + r k k' = P - k c' - c k' + s k k'`` with ``c = P h``,
     ``s = h' c + r``, ``k = c / s``. Skipped (exactly) when ``valid`` is false."""
     c = P @ h
-    s = h @ c + r
-    ok = valid & (s > 0)
-    k = jnp.where(ok, c / jnp.where(ok, s, 1.0), 0.0)
-    z = z + k * jnp.where(ok, y - h @ z, 0.0)
-    P = P - jnp.outer(k, c) - jnp.outer(c, k) + s * jnp.outer(k, k)
-    return z, P
+    return joseph_rank_one(z, P, c, h @ c + r, y - h @ z, valid)
 
 
 def markov_step(
