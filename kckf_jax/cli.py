@@ -194,21 +194,31 @@ def cmd_evaluate(args) -> int:
 
 
 def _load_params(args, sessions):
-    path = getattr(args, "params", None)
-    if not path:
+    """``--params`` for commands on recorded sessions (None without it: each session then
+    uses its own meta.json calibration)."""
+    if not getattr(args, "params", None):
         return None
-    from ._params import load_params
-
-    params = load_params(path)
     from ._run import common_robot
 
-    robot = common_robot(sessions)
-    if params.robot != robot:
-        raise UsageError(
-            f"{path}: parameters are for joints {params.robot.spec!r} but the session has "
-            f"{robot.spec!r}; fit parameters on sessions of this robot"
-        )
-    return params
+    return _params_for(args, common_robot(sessions), None, "the session")
+
+
+def _params_for(args, robot, hall_models, what: str, missing: str = ""):
+    """The parameters a command runs with: ``--params`` (checked against ``robot`` when it is
+    known), else the paper defaults for ``robot`` and its Hall calibration."""
+    from ._params import Params, load_params
+
+    dtype = getattr(args, "dtype", None)
+    if getattr(args, "params", None):
+        params = load_params(args.params, dtype=dtype)
+        if robot is not None and params.robot != robot:
+            raise UsageError(
+                f"{args.params}: parameters are for joints {params.robot.spec!r} but {what} has "
+                f"{robot.spec!r}; fit parameters on sessions of this robot")
+        return params
+    if robot is None:
+        raise UsageError(missing)
+    return Params.paper_defaults(robot, hall_models, dtype=dtype)
 
 
 def cmd_fit(args) -> int:
@@ -259,7 +269,6 @@ def cmd_fit(args) -> int:
 def cmd_stream(args) -> int:
     import signal
 
-    from ._params import Params, load_params
     from ._session import read_meta, read_session
     from ._stream import (
         PacketParser,
@@ -281,15 +290,8 @@ def cmd_stream(args) -> int:
         robot, hall_models = read_meta(args.meta)
     elif session is not None:
         robot, hall_models = session.robot, session.hall_models
-    if args.params:
-        params = load_params(args.params, dtype=args.dtype)
-        if robot is not None and params.robot != robot:
-            raise UsageError(f"{args.params}: parameters are for joints {params.robot.spec!r} "
-                             f"but the stream has {robot.spec!r}")
-    elif robot is not None:
-        params = Params.paper_defaults(robot, hall_models, dtype=args.dtype)
-    else:
-        raise UsageError("the robot layout is unknown: give --meta meta.json, --params FILE or "
+    params = _params_for(args, robot, hall_models, "the stream",
+                         "the robot layout is unknown: give --meta meta.json, --params FILE or "
                          "a replay://SESSION source")
     sf = StreamingFilter(params, method, gap_s=args.gap, on_gap=args.on_gap)
     sf.warmup()  # compiled before the source opens: no early packet waits for XLA
@@ -326,17 +328,11 @@ def jnp_name(params) -> str:
 
 def cmd_export(args) -> int:
     from ._export import export_step
-    from ._params import Params, load_params
+    from ._session import read_meta
 
-    if args.params:
-        params = load_params(args.params, dtype=args.dtype)
-    elif args.meta:
-        from ._session import read_meta
-
-        robot, hall_models = read_meta(args.meta)
-        params = Params.paper_defaults(robot, hall_models, dtype=args.dtype)
-    else:
-        raise UsageError("give --params FILE (fitted) or --meta meta.json (paper defaults)")
+    robot, hall_models = read_meta(args.meta) if args.meta else (None, None)
+    params = _params_for(args, robot, hall_models, "meta.json",
+                         "give --params FILE (fitted) or --meta meta.json (paper defaults)")
     method = _check_methods([args.method])[0]
     n = export_step(params, args.output, method=method, baked=not args.pass_params)
     _say(args, f"wrote {args.output} ({n} bytes): {method} step for joints "
