@@ -18,7 +18,7 @@ Two paths use this:
 * ``"steady"``: constant time step, no missing reading and the paper's constant Hall noise
   (``hall_noise="angle"``). Then the covariance converges (to 1e-14 relative within about 4,000
   steps at 100 Hz for the paper's parameters) and the map becomes constant: the sequential
-  filter runs the first ``L = min(T, STEADY_STEPS)`` rows, and the converged map serves every
+  filter runs the first ``L = HEAD_ROWS[dtype]`` rows, and the converged map serves every
   later row. If the covariance has not converged by then (relative change above
   ``STEADY_TOL``), a ``lax.cond`` falls back to the sequential filter for the whole recording,
   inside the same compiled function.
@@ -32,6 +32,8 @@ Both agree with the sequential filter to 1e-8 rad in float64 (tests/test_fast.py
 """
 
 from __future__ import annotations
+
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -49,34 +51,64 @@ from ._filter import (
     init_state,
     scan_filter,
 )
-from ._model import FILTER_METHODS, block_gather, structure
+from ._hall import hall_angle
+from ._model import FILTER_METHODS, structure
 from ._params import Params
 
 #: Rows the steady path filters in full before it switches to the converged map (the paper's
 #: parameters converge to 1e-10 within about 2,600 rows at 100 Hz; 1e-14 within 4,000).
 STEADY_STEPS = 4096
+#: Rows filtered in full before the switch, per precision (at most ``STEADY_STEPS``): in
+#: float32 the covariance reaches its rounding floor (``STEADY_TOL``) within about 1,000
+#: rows for the paper's parameters, and switching at 2,048 rows gives the same estimates as
+#: at 4,096 (to 1e-7 rad; tests/test_fast.py); float64 needs the longer head for 1e-10.
+HEAD_ROWS = {np.dtype("float64"): 4096, np.dtype("float32"): 2048}
 #: Relative change of the covariance over its last step below which it counts as converged.
 STEADY_TOL = {np.dtype("float64"): 1e-10, np.dtype("float32"): 1e-5}
 PATHS = ("auto", "sequential", "steady", "parallel")
+#: Filters whose covariance converges on regular data, so that ``"auto"`` may pick the steady
+#: path: in the standard KF the torso angle and its bias are unobservable (Eq. 21), their
+#: variance grows without bound and the steady path would always fall back.
+CONVERGING_METHODS = ("kckf",)
 
 
 def steady_conditions(params: Params, series: SensorSeries, method: str) -> str | None:
-    """Why the steady path does not apply to these (concrete) inputs, or None if it does."""
+    """Why the steady path does not apply to these (concrete) inputs, or None if it does.
+
+    ``series`` may be one recording or a batch (leading axes): a batch must share one
+    constant time step, since ``steady_batch`` runs one covariance phase for all of it.
+    Traced inputs (inside ``jit``) pass the data checks unchecked: only the static ones
+    apply, and the caller vouches for the rest."""
     if method not in FILTER_METHODS:
         return f"method {method!r} is not a Kalman filter"
     if params.hall_noise != "angle":
         return "the voltage noise model makes the Hall noise vary with the data"
-    dt = np.asarray(series.dt, np.float64)
-    if dt.ndim != 1 or dt.shape[0] < 3:
+    if np.ndim(series.dt) < 1 or np.shape(series.dt)[-1] < 3:
         return "fewer than three rows"
-    if np.max(np.abs(dt[1:] - dt[1])) > 1e-9 or not dt[1] > 0:
-        return "the time step is not constant"
-    used = np.asarray(params.robot.rate_pairs).ravel()
-    if np.isnan(np.asarray(series.gyro)[:, used]).any():
+    if any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(series)):
+        return None  # under jit the values are unknown: the caller vouches for them
+    used = tuple(int(c) for c in np.unique(np.asarray(params.robot.rate_pairs)))
+    dev, first, gyro_nan, hall_nan = (float(x) for x in _regularity(
+        series.dt, series.gyro, series.hall_v, used))
+    if dev > 1e-9 or not first > 0:
+        return ("the time step is not constant" if np.ndim(series.dt) == 1 else
+                "the time step is not one constant shared by every trial")
+    if gyro_nan:
         return "a gyro reading is missing"
-    if np.isnan(np.asarray(series.hall_v)).any():
+    if hall_nan:
         return "a Hall reading is missing"
     return None
+
+
+@functools.partial(jax.jit, static_argnums=3)
+def _regularity(dt, gyro, hall_v, used: tuple[int, ...]):
+    """On the device, one small transfer back: the largest deviation of a time step (rows
+    after the first) from the first trial's second one, that step, and whether a used gyro
+    or a Hall reading is missing."""
+    dt = jnp.reshape(dt, (-1, dt.shape[-1]))
+    first = dt[0, 1]
+    return (jnp.max(jnp.abs(dt[:, 1:] - first)), first,
+            jnp.isnan(gyro[..., np.asarray(used)]).any(), jnp.isnan(hall_v).any())
 
 
 def _held_gyro(gyro: jax.Array, hold0: jax.Array) -> jax.Array:
@@ -129,16 +161,165 @@ def _last_finite(gyro: jax.Array, hold0: jax.Array) -> jax.Array:
     return jnp.where(idx >= 0, last, hold0)
 
 
-def _rates_and_readings(params: Params, st, series: SensorSeries, hold0: jax.Array):
-    """For rows with every used gyro reading present (the steady path): each row's block
-    rates from the previous row and its fused Hall readings, ``(T, P, m + 1)`` and
-    ``(T, P, m)``; vectorised over rows, without the general path's forward fill."""
-    plus, minus = params.robot.rate_pairs
-    prev = jnp.concatenate([hold0[None], series.gyro[:-1]], axis=0)
-    rates = jax.vmap(lambda g: block_gather(st, g[plus] - g[minus]))(prev)
-    h, _, _ = jax.vmap(lambda v: fused_pairs(*hall_measurements(params, v)))(series.hall_v)
+def _readings_maps(params: Params, st, dtype):
+    """The steady path's readings as linear maps of the raw rows: block rates ``r = Jr
+    g[used]`` (``P x (m + 1) x Gu``, constant) and fused Hall readings ``h = Jh angles``
+    (``P x m x M``; the inverse-variance weights of ``fused_pairs`` for the constant Hall
+    noise). Returns ``(used, Jr, Jh)``: ``used`` are the gyro columns the rates read."""
+    robot = params.robot
+    plus, minus = robot.rate_pairs
+    used = np.flatnonzero(np.any(robot.rate_map != 0.0, axis=0))
+    col = {int(c): i for i, c in enumerate(used)}
+    Jr = np.zeros(st.angle_index.shape + (len(used),))
+    for (p, i), k in np.ndenumerate(st.angle_index):
+        if k >= 0:
+            Jr[p, i, col[int(plus[k])]] += 1.0
+            Jr[p, i, col[int(minus[k])]] -= 1.0
+    M = robot.n_hall
+    _, r, _ = hall_measurements(params, jnp.zeros(M, dtype))
     ji = st.joint_index
-    return rates, jnp.where(ji < 0, 0.0, h[:, np.maximum(ji, 0)])
+
+    def readings(angle):
+        h, _, _ = fused_pairs(angle, r, jnp.ones(M, bool))
+        return jnp.where(ji < 0, 0.0, h[np.maximum(ji, 0)])
+
+    return used, jnp.asarray(Jr, dtype), jax.jacfwd(readings)(jnp.zeros(M, dtype))
+
+
+def _rank_one_sum(x, W):
+    """``U[p, a, t, b] = sum_i x[i, t, b] W[(t,) i, p, a]`` for readings ``x`` ``(I, T, B)``
+    and a map ``W`` ``(I, P, Nz)`` (or one per row, ``(T, I, P, Nz)``), written as one
+    broadcast product per ``i``: XLA fuses the terms into a single loop, vectorised over
+    rows and trials (the innermost axes), where a ``dot`` with these small inner dimensions
+    costs several times more on a CPU."""
+    def w(i):
+        return W[i][:, :, None, None] if W.ndim == 3 else jnp.moveaxis(W[:, i], 0, 2)[..., None]
+
+    return sum(x[i][None, None] * w(i) for i in range(x.shape[0]))
+
+
+#: Trial-rows per block of the steady path's mean: a block's readings, inputs and states
+#: stay in cache, and the per-block dispatch (a few kernels) is spread over many rows.
+MEAN_BLOCK = 1 << 16
+
+
+def _head_rows(dtype) -> int:
+    return HEAD_ROWS.get(np.dtype(dtype), STEADY_STEPS)
+
+
+def _block_rows(trials: int, head: int | None) -> int:
+    """Rows per block for ``trials`` trials: a power of two, at least 256 and, with a head of
+    per-row maps, at most its ``head`` rows (which then split into whole blocks)."""
+    rows = max(256, 1 << int(np.log2(max(MEAN_BLOCK // trials, 1))))
+    return int(rows if head is None else min(head, rows))
+
+
+def _steady_mean(params: Params, st, series: SensorSeries, z0, hold0, maps, head=None,
+                 done=None):
+    """The mean of the steady path over a batch of trials, from dense maps of the raw readings.
+
+    Row ``k``: ``z_k = A z_{k-1} + g_{k-1}[used] Wg + hall_angle(V_k) Wh`` with ``(A, B, C)``
+    the converged map (``maps``); the first ``L`` rows use per-row maps ``head = (As, Bs,
+    Cs)`` (leading axis ``L``, a power of two) when given. ``Wg = B Jr`` and
+    ``Wh = C Jh`` fold the rate differences and the fusion of each Hall pair into the map, so
+    a row costs a few fused broadcast products on its raw readings and the scan of ``z``.
+
+    ``series`` has a leading trial axis ``B``; ``z0`` is ``(B, P, Nz)`` and ``hold0``
+    ``(B, G)``. The rows go in blocks (``_block_rows``): a block's readings are sliced out,
+    laid out (row, feature, trial) so that the scan updates every trial with vector
+    instructions, and its estimates written into the outputs in place; no intermediate the
+    size of the recording exists. ``done = (angles, biases)`` (``(B, F, K)`` each) are the
+    estimates of the first ``F`` rows, already filtered: the mean starts at row ``F`` (with
+    ``z0`` and ``hold0`` the state there) and the outputs are filled in after them. Returns
+    ``(angles, biases, z_last)``, angles and biases ``(B, T, K)``."""
+    dtype = z0.dtype
+    used, Jr, Jh = _readings_maps(params, st, dtype)
+    Bt, P, nz = z0.shape
+    T = series.dt.shape[1]
+    R = _block_rows(Bt, None if head is None else head[0].shape[0])
+    K = len(st.block_of)
+    coeffs = [c[:, None, None] for c in params.hall_coeffs]
+
+    def weights(B, C):  # (..., P, nz, m1), (..., P, nz, m) -> (..., Gu, P, nz), (..., M, P, nz)
+        return (jnp.einsum("...pij,pjg->...gpi", B, Jr), jnp.einsum("...pij,pjm->...mpi", C, Jh))
+
+    def step(z, row):  # z (P, nz, B); A_k (P, nz, nz)
+        A_k, u = row
+        z = sum(A_k[:, :, j, None] * z[:, j, None, :] for j in range(nz)) + u
+        return z, z
+
+    def block(carry, start, n, maps_k):
+        """Rows ``start .. start + n`` (``n`` static) with maps ``(A, Wg, Wh)``, each with a
+        leading row axis when per-row."""
+        z, g_last, ang_out, bias_out = carry
+        gyro = jax.lax.dynamic_slice_in_dim(series.gyro, start, n, axis=1)
+        hall = jax.lax.dynamic_slice_in_dim(series.hall_v, start, n, axis=1)
+        # Feature-major blocks (feature, row, trial): every product below is vectorised over
+        # rows and trials. One concatenation lays the block out in memory (a plain transpose
+        # would be folded into the consumers as strided reads), and the barriers keep the
+        # exponentials from being evaluated once per output coordinate.
+        g = jnp.transpose(gyro[..., used], (2, 1, 0))  # (Gu, n, B)
+        x = jax.lax.optimization_barrier(jnp.concatenate(
+            [jnp.concatenate([g_last[:, None], g[:, :-1]], axis=1),
+             jnp.transpose(hall, (2, 1, 0))]))
+        Gu = len(used)
+        angle = jax.lax.optimization_barrier(hall_angle(x[Gu:], *coeffs))  # (M, n, B)
+        A_k, Wg_k, Wh_k = maps_k
+        U = jnp.moveaxis(_rank_one_sum(x[:Gu], Wg_k) + _rank_one_sum(angle, Wh_k), 2, 0)
+        if A_k.ndim == 3:
+            z, Z = jax.lax.scan(lambda z, u: step(z, (A_k, u)), z, U)
+        else:
+            z, Z = jax.lax.scan(step, z, (A_k, U))
+        a, b = _block_outputs(st, Z)
+        ang_out = jax.lax.dynamic_update_slice_in_dim(ang_out, a, start, axis=1)
+        bias_out = jax.lax.dynamic_update_slice_in_dim(bias_out, b, start, axis=1)
+        return z, g[:, -1], ang_out, bias_out
+
+    out = jnp.zeros((Bt, T, K), dtype)
+    F = 0
+    ang_out = bias_out = out
+    if done is not None:
+        F = done[0].shape[1]
+        ang_out = jax.lax.dynamic_update_slice_in_dim(out, done[0], 0, axis=1)
+        bias_out = jax.lax.dynamic_update_slice_in_dim(out, done[1], 0, axis=1)
+    carry = (jnp.moveaxis(z0, 0, -1), hold0[:, used].T, ang_out, bias_out)
+    L = F
+    if head is not None:
+        As, Bs, Cs = head
+        L = F + As.shape[0]
+        Wgs, Whs = weights(Bs, Cs)
+
+        def head_block(i, carry):
+            start = i * R
+            maps_k = tuple(jax.lax.dynamic_slice_in_dim(x, start, R) for x in (As, Wgs, Whs))
+            return block(carry, F + start, R, maps_k)
+
+        carry = jax.lax.fori_loop(0, (L - F) // R, head_block, carry)
+    A, B, C = maps
+    maps_ss = (A,) + weights(B, C)
+    n_full = (T - L) // R
+    if n_full:
+        carry = jax.lax.fori_loop(0, n_full, lambda i, c: block(c, L + i * R, R, maps_ss), carry)
+    if L + n_full * R < T:
+        carry = block(carry, L + n_full * R, T - L - n_full * R, maps_ss)
+    z, _, angles, bias = carry
+    return angles, bias, jnp.moveaxis(z, -1, 0)
+
+
+def _block_outputs(st, Z):
+    """Angles and biases ``(B, n, K)`` from block states ``Z`` ``(n, P, Nz, B)``: each is a
+    short sum over one block's coordinates (``xb = T z``), written term by term (``T`` is
+    sparse)."""
+    m1 = st.m + 1
+    Tm = np.asarray(st.T)
+
+    def coordinate(p, row):
+        terms = [float(Tm[row, j]) * Z[:, p, j] for j in range(st.n_z) if Tm[row, j] != 0.0]
+        return sum(terms) if terms else jnp.zeros_like(Z[:, p, 0])
+
+    ang = jnp.stack([coordinate(p, i) for p, i in zip(st.block_of, st.slot_of)], axis=-1)
+    bias = jnp.stack([coordinate(p, m1 + i) for p, i in zip(st.block_of, st.slot_of)], axis=-1)
+    return jnp.moveaxis(ang, 1, 0), jnp.moveaxis(bias, 1, 0)
 
 
 def _covariance_phase(params: Params, st, P0, head):
@@ -211,33 +392,27 @@ def _steady_parts(params: Params, series: SensorSeries, method: str, state: Filt
     """The steady path without its fallback: ``(final, estimate, relative covariance change
     at the switch)``. ``series`` must be longer than ``STEADY_STEPS`` rows."""
     T = series.dt.shape[0]
-    L = STEADY_STEPS
-    st = structure(params.robot, method)
     dtype = state.z.dtype
+    L = _head_rows(dtype)
+    st = structure(params.robot, method)
     series = jax.tree_util.tree_map(lambda x: jnp.asarray(x).astype(dtype), series)
     head = jax.tree_util.tree_map(lambda x: x[:L], series)
-    tail = jax.tree_util.tree_map(lambda x: x[L:], series)
     mid, est_head = scan_filter(params, head, method, state, remat_chunk)
-    (row0, _) = _inputs(params, st, jax.tree_util.tree_map(lambda x: x[:1], tail),
+    (row0, _) = _inputs(params, st, jax.tree_util.tree_map(lambda x: x[L:L + 1], series),
                         mid.gyro_hold)
     row0 = jax.tree_util.tree_map(lambda x: x[0], row0)
-    rates, hb = _rates_and_readings(params, st, tail, mid.gyro_hold)
-    held = _last_finite(tail.gyro, mid.gyro_hold)[None]
     P_ss, A, B, C = _maps(params, st, mid.P, row0)
     change = jnp.max(jnp.abs(P_ss - mid.P)) / jnp.max(jnp.abs(P_ss))
-    w = jnp.concatenate([rates, hb], axis=2)
-    z = _mean_scan(A, jnp.concatenate([B, C], axis=2), w, mid.z, parallel=False)
-    # Outputs: angles and biases are linear in z; the covariance (so the std) is constant.
-    one = block_estimate(st, z[0], P_ss)
-    Tm = jnp.asarray(st.T, dtype)
-    xb = jnp.einsum("ij,tpj->tpi", Tm, z)
-    m1 = st.m + 1
-    bo, so = st.block_of, st.slot_of
-    est_tail = Estimate(xb[:, bo, so], jnp.broadcast_to(one.angle_std, (T - L,) +
-                                                        one.angle_std.shape),
-                        xb[:, bo, m1 + so])
-    est = jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a, b]), est_head, est_tail)
-    return FilterState(z[-1], P_ss, held[-1]), est, change
+    one = jax.tree_util.tree_map(lambda x: x[None], series)
+    angles, bias, z = _steady_mean(params, st, one, mid.z[None], mid.gyro_hold[None], (A, B, C),
+                                   done=(est_head.angles[None], est_head.bias[None]))
+    angles, bias, z = angles[0], bias[0], z[0]
+    # The covariance (so the std) is constant from here on.
+    std = block_estimate(st, z, P_ss).angle_std
+    std = jnp.concatenate([est_head.angle_std, jnp.broadcast_to(std, (T - L,) + std.shape)])
+    est = Estimate(angles, std, bias)
+    held = _last_finite(series.gyro[L:], mid.gyro_hold)
+    return FilterState(z, P_ss, held), est, change
 
 
 def _tol(dtype) -> float:
@@ -246,8 +421,9 @@ def _tol(dtype) -> float:
 
 def steady_filter(params: Params, series: SensorSeries, method: str = "kckf",
                   state: FilterState | None = None) -> tuple[FilterState, Estimate]:
-    """The steady path: the sequential filter for the first ``STEADY_STEPS`` rows (where the
-    covariance converges), then the converged affine map for the rest. Falls back to the
+    """The steady path: the sequential filter for the first ``HEAD_ROWS[dtype]`` rows (where
+    the covariance converges), then the converged affine map for the rest (``_steady_mean``).
+    Recordings of at most ``STEADY_STEPS`` rows take the sequential filter. Falls back to the
     sequential filter for every row (``lax.cond``, same compiled function) when the covariance
     is still moving at that point. Requires what ``steady_conditions`` checks."""
     if state is None:
@@ -263,9 +439,9 @@ def steady_batch(params: Params, series: SensorSeries, method: str = "kckf",
                  remat_chunk: int | None = None) -> Estimate:
     """The steady path over a batch of regular trials (leading axis): every trial has the same
     time steps, readings and noise, so its covariance is the same; the covariance phase runs
-    once for the whole batch, and each trial only applies the affine maps (a scan of two tiny
-    products). One fallback decision for the whole batch (a per-trial ``lax.cond`` under
-    ``vmap`` would run both branches).
+    once for the whole batch (the first ``HEAD_ROWS[dtype]`` rows), and the trials only apply
+    the affine maps, all at once (``_steady_mean``). One fallback decision for the whole batch
+    (a per-trial ``lax.cond`` under ``vmap`` would run both branches).
 
     ``remat_chunk`` applies to the sequential fallback only (``scan_filter``).
     """
@@ -278,7 +454,7 @@ def steady_batch(params: Params, series: SensorSeries, method: str = "kckf",
 
     if T <= STEADY_STEPS:
         return sequential()
-    L = STEADY_STEPS
+    L = _head_rows(dtype)
     st = structure(params.robot, method)
     series = jax.tree_util.tree_map(lambda x: jnp.asarray(x).astype(dtype), series)
     # Trial 0's time steps, masks and noise stand for every trial's (regular batch).
@@ -289,23 +465,16 @@ def steady_batch(params: Params, series: SensorSeries, method: str = "kckf",
     row = jax.tree_util.tree_map(lambda x: x[L], (dt, rates, noise, hb, rb, vb))
     P_ss, A, B, C = _maps(params, st, P_L, row)
     change = jnp.max(jnp.abs(P_ss - P_L)) / jnp.max(jnp.abs(P_ss))
-    BC = jnp.concatenate([B, C], axis=2)
+    m1 = st.m + 1
+    head_maps = (As, BCs[..., :m1], BCs[..., m1:])
     std_head = jax.vmap(lambda Pk: block_estimate(st, jnp.zeros(Pk.shape[:2], dtype),
                                                   Pk).angle_std)(Ps)
     std_tail = block_estimate(st, jnp.zeros(P_ss.shape[:2], dtype), P_ss).angle_std
-    Tm = jnp.asarray(st.T, dtype)
-    m1 = st.m + 1
-    bo, so = st.block_of, st.slot_of
 
-    def one(trial):
-        r, h = _rates_and_readings(params, st, trial, state.gyro_hold)
-        w = jnp.concatenate([r, h], axis=2)
-        z_head = _mean_scan(As, BCs, w[:L], state.z, parallel=False)
-        z = jnp.concatenate([z_head, _mean_scan(A, BC, w[L:], z_head[-1], parallel=False)])
-        xb = jnp.einsum("ij,tpj->tpi", Tm, z)
-        return xb[:, bo, so], xb[:, bo, m1 + so]
-
-    angles, bias = jax.vmap(one)(series)
+    Bt = series.dt.shape[0]
+    z0 = jnp.broadcast_to(state.z, (Bt,) + state.z.shape)
+    hold0 = jnp.broadcast_to(state.gyro_hold, (Bt,) + state.gyro_hold.shape)
+    angles, bias, _ = _steady_mean(params, st, series, z0, hold0, (A, B, C), head_maps)
     std = jnp.concatenate([std_head, jnp.broadcast_to(std_tail, (T - L,) + std_tail.shape)])
     est = Estimate(angles, jnp.broadcast_to(std, angles.shape), bias)
     return jax.lax.cond(change <= _tol(dtype), lambda: est, sequential)
@@ -313,8 +482,9 @@ def steady_batch(params: Params, series: SensorSeries, method: str = "kckf",
 
 def choose_path(params: Params, series: SensorSeries, method: str, path: str = "auto") -> str:
     """The path ``run_filter`` takes: ``path`` itself unless ``"auto"``, which picks
-    ``"steady"`` when it applies to these concrete inputs (and the recording is longer than
-    ``STEADY_STEPS``), else ``"parallel"`` on an accelerator and ``"sequential"`` on a CPU."""
+    ``"steady"`` when it applies to these concrete inputs, the recording is longer than
+    ``STEADY_STEPS`` and the method's covariance converges (``CONVERGING_METHODS``), else
+    ``"parallel"`` on an accelerator and ``"sequential"`` on a CPU."""
     if path not in PATHS:
         raise ValueError(f"path must be one of {', '.join(PATHS)}, got {path!r}")
     if path == "steady":
@@ -323,7 +493,7 @@ def choose_path(params: Params, series: SensorSeries, method: str, path: str = "
             raise ValueError(f"path='steady' does not apply: {why}; use path='sequential'")
     if path != "auto":
         return path
-    if method not in FILTER_METHODS:
+    if method not in CONVERGING_METHODS:
         return "sequential"
     if isinstance(series.dt, jax.core.Tracer):
         return "sequential"
@@ -333,12 +503,7 @@ def choose_path(params: Params, series: SensorSeries, method: str, path: str = "
 
 
 def _all_steady(params, series, method) -> bool:
-    dt = np.asarray(series.dt)
-    if dt.ndim == 1:
-        return steady_conditions(params, series, method) is None
-    return all(steady_conditions(params, jax.tree_util.tree_map(lambda x, b=b: np.asarray(x)[b],
-                                                                series), method) is None
-               for b in range(dt.shape[0]))
+    return steady_conditions(params, series, method) is None
 
 
 def parallel_filter(params: Params, series: SensorSeries, method: str = "kckf",

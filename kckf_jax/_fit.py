@@ -26,7 +26,7 @@ import numpy as np
 import optax
 from jaxtyping import Array, Bool, Float
 
-from ._fast import STEADY_STEPS, steady_batch
+from ._fast import CONVERGING_METHODS, STEADY_STEPS, steady_batch
 from ._filter import SensorSeries, pad_series, scan_filter
 from ._params import _LEAVES, Params, params_to_dict, with_floors
 from ._session import Session
@@ -110,12 +110,14 @@ def per_angle_rmse(params: Params, batch: Batch, method: str = "kckf",
     """Pooled RMSE (rad) of every angle over all trials and steps with truth, and the counts.
 
     A regular batch with the constant Hall noise model takes the steady path (the same
-    estimates, ``_fast.py``); anything else the sequential scan.
+    estimates, ``_fast.py``) for a filter whose covariance converges; anything else the
+    sequential scan.
 
     NaN-free by construction: missing truth is masked before it is subtracted, and the square
     root is guarded, so neither the loss nor its gradient is NaN when truth is missing.
     """
-    if batch.regular and params.hall_noise == "angle" and batch.truth.shape[1] > STEADY_STEPS:
+    if (batch.regular and params.hall_noise == "angle" and method in CONVERGING_METHODS
+            and batch.truth.shape[1] > STEADY_STEPS):
         est = steady_batch(params, batch.series, method, remat_chunk)
     else:
         est = jax.vmap(lambda s: scan_filter(params, s, method, remat_chunk=remat_chunk)[1])(

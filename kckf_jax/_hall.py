@@ -24,12 +24,12 @@ DEG = math.pi / 180.0
 
 
 def hall_angle(
-    v: Float[ArrayLike, "*M"],
-    a: Float[ArrayLike, "*M"],
-    b: Float[ArrayLike, "*M"],
-    c: Float[ArrayLike, "*M"],
-    d: Float[ArrayLike, "*M"],
-    sign: Real[ArrayLike, "*M"],
+    v: Float[ArrayLike, "*#M"],
+    a: Float[ArrayLike, "*#M"],
+    b: Float[ArrayLike, "*#M"],
+    c: Float[ArrayLike, "*#M"],
+    d: Float[ArrayLike, "*#M"],
+    sign: Real[ArrayLike, "*#M"],
 ) -> Float[Array, "*M"]:
     """Joint angle (rad) from Hall voltage ``v`` (V), Eq. (1); coefficients in rad."""
     v = jnp.asarray(v)
@@ -37,12 +37,12 @@ def hall_angle(
 
 
 def hall_slope(
-    v: Float[ArrayLike, "*M"],
-    a: Float[ArrayLike, "*M"],
-    b: Float[ArrayLike, "*M"],
-    c: Float[ArrayLike, "*M"],
-    d: Float[ArrayLike, "*M"],
-    sign: Real[ArrayLike, "*M"],
+    v: Float[ArrayLike, "*#M"],
+    a: Float[ArrayLike, "*#M"],
+    b: Float[ArrayLike, "*#M"],
+    c: Float[ArrayLike, "*#M"],
+    d: Float[ArrayLike, "*#M"],
+    sign: Real[ArrayLike, "*#M"],
 ) -> Float[Array, "*M"]:
     """``d theta / d V`` (rad/V) of Eq. (1)."""
     v = jnp.asarray(v)
