@@ -38,6 +38,7 @@ import functools
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import Array, Float
 
 from ._filter import (
     Estimate,
@@ -513,3 +514,28 @@ def parallel_filter(params: Params, series: SensorSeries, method: str = "kckf",
         state = init_state(params, method)
     final, est, _ = _two_phase(params, series, method, state, series.dt.shape[0], parallel=True)
     return final, est
+
+
+def converged_map(params: Params, method: str, P: Float[Array, "P Nz Nz"],
+                  dt: Float[Array, ""]):
+    """The steady path's map for one packet at a time (the streaming filter's host path).
+
+    For the block covariance ``P`` before a step of ``dt`` with every reading present,
+    returns ``(P_new, A, Wg, Wh, std)``: the covariance after the step, the block map ``A``
+    (``P x Nz x Nz``), the input maps on the used gyro columns of the previous packet (``Gu x
+    P x Nz``) and on the Hall angles of this one (``M x P x Nz``), and the angles' standard
+    deviations. When ``P`` has converged, ``P_new = P`` and every later packet with the same
+    ``dt`` and every reading is the affine map ``z -> A z + g Wg + angle Wh``.
+    """
+    st = structure(params.robot, method)
+    dtype = P.dtype
+    robot = params.robot
+    inputs = SensorSeries(dt.astype(dtype), jnp.zeros(3 * robot.n_links, dtype),
+                          jnp.zeros(robot.n_hall, dtype))
+    row = block_inputs(params, st, jnp.zeros(3 * robot.n_links, dtype), inputs)
+    P_new, A, B, C = _maps(params, st, P, row)
+    _, Jr, Jh = _readings_maps(params, st, dtype)
+    Wg = jnp.einsum("pij,pjg->gpi", B, Jr)
+    Wh = jnp.einsum("pij,pjm->mpi", C, Jh)
+    std = block_estimate(st, jnp.zeros(P.shape[:2], dtype), P_new).angle_std
+    return P_new, A, Wg, Wh, std

@@ -25,7 +25,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._filter import METHODS, SensorSeries, init_state, step
+from ._fast import CONVERGING_METHODS, HEAD_ROWS, STEADY_STEPS, STEADY_TOL, converged_map
+from ._filter import METHODS, FilterState, SensorSeries, init_state, step
+from ._model import structure
 from ._params import Params
 from ._robot import Robot
 
@@ -141,6 +143,91 @@ class PacketParser:
         return arr, problems
 
 
+class _HostMap:
+    """The converged filter as one NumPy float64 matrix, for packets on the host.
+
+    Once the covariance has converged (constant time step, every reading present), a packet
+    changes the block states ``z`` by the affine map of ``_fast.converged_map``; with the
+    Hall model's two exponentials as inputs (``theta = s a e^{bV} - s c e^{-dV}``, Eq. 1) the
+    whole step is one product ``M x`` for ``x = [z, (scratch), g_prev, e^{bV}, e^{-dV}, g]``,
+    giving the new ``z``, the angles and a check row (the sum of every input, finite exactly
+    when every reading is). Two buffers take turns: the product writes the next packet's
+    ``x`` directly. No jitted call, so no dispatch: a packet costs a few NumPy calls.
+    """
+
+    def __init__(self, params: Params, method: str, P, dt: float):
+        robot = params.robot
+        st = structure(robot, method)
+        P_new, A, Wg, Wh, std = (np.asarray(x, np.float64) for x in _converged_map(
+            params, method, P, jnp.asarray(dt, P.dtype)))
+        self.P, self.std, self.dt = P_new, std, float(dt)
+        nb, nz = A.shape[:2]
+        N, K, M = nb * nz, len(st.block_of), robot.n_hall
+        self.used = np.flatnonzero(np.any(robot.rate_map != 0.0, axis=0))
+        Gu = len(self.used)
+        a, b, c, d, sign = (np.asarray(x, np.float64) for x in params.hall_coeffs)
+        Az = np.zeros((N, N))
+        for p in range(nb):
+            Az[p * nz:(p + 1) * nz, p * nz:(p + 1) * nz] = A[p]
+        Wh = Wh.reshape(M, N).T
+        # Columns: z | scratch (the previous angles and check, weight 0) | g_prev | e^{bV} |
+        # e^{-dV} | g (weight 0 but in the check).
+        Mz = np.concatenate([Az, np.zeros((N, K + 1)), Wg.reshape(Gu, N).T, Wh * (sign * a),
+                             -Wh * (sign * c), np.zeros((N, Gu))], axis=1)
+        Tang = np.zeros((K, N))  # angles from z: angle k is row slot_of[k] of T z in its block
+        for k, (p, i) in enumerate(zip(st.block_of, st.slot_of)):
+            Tang[k, p * nz:(p + 1) * nz] = st.T[i]
+        check = np.ones((1, Mz.shape[1]))
+        check[0, N:N + K + 1] = 0.0
+        self.M = np.ascontiguousarray(np.vstack([Mz, Tang @ Mz, check]))
+        self.kb, self.kd = b, -d  # exponents per volt
+        self.N, self.K, self.nz, self.nb = N, K, nz, nb
+        g0 = N + K + 1
+        e0 = g0 + Gu
+
+        def views(buf):  # (x, the product's target, g_prev, both exponentials, e^{bV}, e^{-dV}, g)
+            return (buf, buf[:g0], buf[g0:e0], buf[e0:e0 + 2 * M], buf[e0:e0 + M],
+                    buf[e0 + M:e0 + 2 * M], buf[e0 + 2 * M:])
+
+        self._views = [views(np.zeros(self.M.shape[1])), views(np.zeros(self.M.shape[1]))]
+        self._cur = 0
+
+    def start(self, z: np.ndarray, gyro_prev: np.ndarray) -> None:
+        x = self._views[self._cur]
+        x[0][: self.N] = z.ravel()
+        x[2][:] = gyro_prev[self.used]
+
+    def step(self, dt: float, gyro: np.ndarray, hall_v: np.ndarray) -> np.ndarray | None:
+        """The angles after this packet, or None (state untouched) when the packet is not one
+        the converged map describes: another time step, or a reading missing or absurd."""
+        if abs(dt - self.dt) > 1e-9:
+            return None
+        x, _, _, e, eb, ed, g = self._views[self._cur]
+        nxt = self._views[1 - self._cur]
+        np.multiply(self.kb, hall_v, out=eb)
+        np.multiply(self.kd, hall_v, out=ed)
+        np.exp(e, out=e)
+        g[:] = gyro[self.used]
+        out = np.dot(self.M, x, out=nxt[1])
+        if not math.isfinite(out[-1]):
+            return None
+        nxt[2][:] = g
+        self._cur ^= 1
+        return out[self.N:self.N + self.K]
+
+    def z(self) -> np.ndarray:
+        return self._views[self._cur][0][: self.N].reshape(self.nb, self.nz).copy()
+
+    def gyro_prev(self) -> np.ndarray:
+        return self._views[self._cur][2].copy()
+
+
+#: Packets between two checks of the covariance for the host path.
+HOST_CHECK_EVERY = 64
+#: Compiled once per parameter layout (``StreamingFilter.warmup`` compiles it up front).
+_converged_map = eqx.filter_jit(converged_map)
+
+
 class StreamingFilter:
     """The batch filter's ``step``, one packet at a time, compiled once.
 
@@ -158,6 +245,15 @@ class StreamingFilter:
     dominates the latency: ``low_latency()`` turns off JAX's async dispatch, which the
     ``kckf stream`` command does (see benchmarks/README.md).
 
+    **Host path** (``host_path=True``, the KCKF with the constant Hall noise model): once the
+    packets arrive at a constant time step with every reading and the covariance has
+    converged (after ``HEAD_ROWS`` such packets, checked every ``HOST_CHECK_EVERY``, to
+    ``STEADY_TOL``), the filter is the steady path's affine map (``_fast.converged_map``)
+    and each packet is one NumPy product on the host, with no jitted call (``on_host``). Any
+    other packet (another time step, a missing or masked reading, a gap) hands the state back
+    to the device step for that packet, and the watch starts again. The estimates are the
+    device step's to rounding.
+
     Example:
         >>> sf = StreamingFilter(Params.paper_defaults(Robot.from_spec("x")))
         >>> sf.push(PacketParser(sf.robot).parse(b'{"t": 0.0, "hall1_x_l": 1.3}'))["status"]
@@ -165,7 +261,8 @@ class StreamingFilter:
     """
 
     def __init__(self, params: Params, method: str = "kckf", *, gap_s: float = 0.5,
-                 on_gap: str = "predict", max_predict_s: float = 3600.0):
+                 on_gap: str = "predict", max_predict_s: float = 3600.0,
+                 host_path: bool = True):
         if method not in METHODS:
             raise ValueError(f"unknown method {method!r}; expected one of {', '.join(METHODS)}")
         if on_gap not in ("predict", "restart"):
@@ -182,26 +279,85 @@ class StreamingFilter:
         if method in ("hall_l", "hall_r"):
             estimated[self.robot.n_joint_axes:] = False
         self._estimated = estimated
+        self._all_estimated = bool(estimated.all())
         self._fn, self._flatten, self._unflatten = _compiled_step(params, method)
         self._x = np.empty(1 + self._G + self._M, dtype=self.dtype)
         self._initial = jax.device_put(self._flatten(init_state(params, method)))
+        self._host_ok = (host_path and method in CONVERGING_METHODS
+                         and params.hall_noise == "angle")
+        self._used = np.flatnonzero(np.any(self.robot.rate_map != 0.0, axis=0))
+        self._tol = STEADY_TOL.get(np.dtype(self.dtype), 1e-5)
+        # As in the batch steady path: at least its head of regular rows before switching.
+        self._min_regular = HEAD_ROWS.get(np.dtype(self.dtype), STEADY_STEPS)
         self.reset()
 
     def reset(self) -> None:
         """Back to the initial state (before the first packet)."""
         self._state = self._initial
         self.t_prev: float | None = None
+        self._host: _HostMap | None = None
+        self._regular, self._last_dt, self._P_check = 0, None, None
 
     def warmup(self) -> None:
-        """Compile the step (call before the first real packet), then reset."""
+        """Compile the step (and the host path's map; call before the first real packet),
+        then reset."""
         self._x[:] = 0.0
         jax.block_until_ready(self._fn(self._state, self._x))
+        if self._host_ok:
+            _HostMap(self.params, self.method, self._unflatten(self._state).P, 0.01)
         self.reset()
 
     @property
+    def on_host(self) -> bool:
+        """Whether packets currently take the host path (see the class docstring)."""
+        return self._host is not None
+
+    @property
     def state(self):
-        """The current ``FilterState`` (a copy assembled from the device vector)."""
+        """The current ``FilterState`` (a copy assembled from the device vector, or from the
+        host path's state)."""
+        if self._host is not None:
+            return self._host_state()
         return self._unflatten(self._state)
+
+    def _host_state(self) -> FilterState:
+        host = self._host
+        hold = self._hold_host.copy()
+        hold[self._used] = host.gyro_prev()
+        return FilterState(jnp.asarray(host.z(), self.dtype), jnp.asarray(host.P, self.dtype),
+                           jnp.asarray(hold, self.dtype))
+
+    def _leave_host(self) -> None:
+        self._state = jax.device_put(self._flatten(self._host_state()))
+        self._host = None
+        self._regular, self._last_dt, self._P_check = 0, None, None
+
+    def _watch(self, dt: float, pkt: Packet) -> None:
+        """After a device step: count regular complete packets and, from ``HEAD_ROWS`` of
+        them on (the batch steady path's switch point), every ``HOST_CHECK_EVERY`` compare
+        the covariance over one step; once it has converged, switch to the host path."""
+        complete = (dt > 0 and bool(np.isfinite(pkt.hall_v).all())
+                    and bool(np.isfinite(pkt.gyro[self._used]).all()))
+        if complete and self._last_dt is not None and abs(dt - self._last_dt) <= 1e-9:
+            self._regular += 1
+        else:
+            self._regular, self._P_check = 0, None
+        self._last_dt = dt if complete else None
+        phase = self._regular % HOST_CHECK_EVERY
+        if self._regular < max(HOST_CHECK_EVERY, self._min_regular) or phase > 1:
+            return
+        state = self._unflatten(self._state)
+        P = np.asarray(state.P, np.float64)
+        if phase == 0:
+            self._P_check = P
+            return
+        if self._P_check is None:
+            return
+        change = np.max(np.abs(P - self._P_check)) / max(np.max(np.abs(P)), 1e-300)
+        if change <= self._tol:
+            self._host = _HostMap(self.params, self.method, state.P, dt)
+            self._hold_host = np.asarray(state.gyro_hold, np.float64)
+            self._host.start(np.asarray(state.z, np.float64), self._hold_host)
 
     def push(self, pkt: Packet) -> dict:
         """Filter one packet; returns the output record (``t``, angles in rad, ``status``)."""
@@ -233,7 +389,13 @@ class StreamingFilter:
         return rec
 
     def _run(self, dt: float, pkt: Packet) -> np.ndarray | None:
-        """One step on the device; the new state is kept only when it is finite."""
+        """One step: on the host path when it applies, else on the device; the new state is
+        kept only when it is finite."""
+        if self._host is not None:
+            angles = self._host.step(dt, pkt.gyro, pkt.hall_v)
+            if angles is not None:
+                return angles
+            self._leave_host()
         x = self._x
         x[0] = dt
         x[1:1 + self._G] = pkt.gyro
@@ -243,14 +405,18 @@ class StreamingFilter:
         if out[-1] < 0.5:
             return None
         self._state = state
+        if self._host_ok:
+            self._watch(dt, pkt)
         return out[: self._K]
 
     def _record(self, t, status, note="", angles=None) -> dict:
         rec: dict = {"t": t}
         if angles is not None:
-            for name, a, est in zip(self.names, angles.tolist(), self._estimated):
-                if est:
-                    rec[name] = a
+            values = angles.tolist()
+            if self._all_estimated:
+                rec.update(zip(self.names, values))
+            else:
+                rec.update((n, a) for n, a, e in zip(self.names, values, self._estimated) if e)
         rec["status"] = status
         if note:
             rec["note"] = note

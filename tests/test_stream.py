@@ -68,6 +68,63 @@ def test_stream_equals_batch_with_drops_and_garbage(session, dtype, tol):
     assert np.max(np.abs(np.asarray(out) - ref)) <= tol
 
 
+def _regular_session(seconds, seed=3):
+    s = simulate(ROBOT, "cyclic", seed=seed, duration_s=seconds, drop_prob=0.0)
+    s.t = np.arange(s.n_steps) * 0.01  # an exactly constant step (a device clock's counter)
+    return s
+
+
+@pytest.mark.parametrize(("dtype", "tol"), [(jnp.float32, 2e-5), (jnp.float64, 1e-8)])
+def test_host_path_engages_leaves_and_equals_batch(dtype, tol):
+    """Regular complete packets: after ``HEAD_ROWS`` of them the converged map runs on the host.
+    A missing Hall reading, a missing used gyro reading and a lost packet each hand the state
+    back to the device step; it comes back after another run of regular packets. Throughout,
+    the estimates are the batch filter's over the packets that arrived."""
+    from kckf_jax._fast import HEAD_ROWS
+
+    head = HEAD_ROWS[np.dtype(dtype)]
+    n = 2 * head + 1200
+    s = _regular_session(n / 100.0)
+    s.hall_v[head + 300, 2] = np.nan
+    s.gyro[head + 400, 0] = np.nan  # gyro1_x: a used column
+    keep = np.delete(np.arange(s.n_steps), head + 500)  # a lost packet: one step of 0.02 s
+    params = Params.paper_defaults(ROBOT, s.hall_models, dtype=dtype)
+    sf = StreamingFilter(params)
+    sf.warmup()
+    parser = PacketParser(ROBOT)
+    out, host = [], []
+    for i in keep:
+        rec = sf.push(parser.parse(packet_bytes(s, i)))
+        out.append([rec[n] for n in ROBOT.angle_names])
+        host.append(sf.on_host)
+    host = np.asarray(host)
+    pos = {i: j for j, i in enumerate(keep)}
+    assert not host[: head - 1].any() and host[head + 100]
+    for i in (head + 300, head + 400, head + 501):
+        assert not host[pos[i]], i  # this packet went to the device
+    assert host[-1]  # and the host path came back
+    ref = batch_angles(s, keep, dtype)
+    assert np.max(np.abs(np.asarray(out) - ref)) <= tol
+    final = sf.state  # assembled from the host path's state
+    series = SensorSeries(jnp.asarray(np.diff(s.t[keep], prepend=0.0), dtype),
+                          jnp.asarray(s.gyro[keep], dtype), jnp.asarray(s.hall_v[keep], dtype))
+    ref_final, _ = run_filter(params, series, "kckf")
+    np.testing.assert_allclose(final.z, ref_final.z, atol=tol * 10, rtol=0)
+    np.testing.assert_allclose(final.P, ref_final.P, rtol=1e-4, atol=1e-12)
+
+
+def test_host_path_only_where_it_applies():
+    s = _regular_session(25.0)
+    parser = PacketParser(ROBOT)
+    packets = [parser.parse(packet_bytes(s, i)) for i in range(s.n_steps)]
+    for kwargs, method in (({"host_path": False}, "kckf"), ({}, "kf")):
+        sf = StreamingFilter(Params.paper_defaults(ROBOT, s.hall_models), method, **kwargs)
+        assert not any(sf.push(p) and sf.on_host for p in packets)
+    sf = StreamingFilter(Params.from_physical(ROBOT, hall_models=s.hall_models,
+                                              hall_noise="voltage"))
+    assert not any(sf.push(p) and sf.on_host for p in packets)
+
+
 def test_one_trace_whatever_arrives(session):
     """Packets of every kind, gaps and restarts: the step is traced once (a retrace raises)."""
     sf = StreamingFilter(Params.paper_defaults(ROBOT), on_gap="restart", gap_s=0.2)
