@@ -51,11 +51,11 @@ sys.path.insert(0, os.path.dirname(__file__))
 from _machine import machine  # noqa: E402
 
 from kckf_jax import Params, Robot, filter_batch, paper_matrices, run_filter, simulate  # noqa: E402
-from kckf_jax._fast import STEADY_STEPS  # noqa: E402
+from kckf_jax._fast import HEAD_ROWS, STEADY_STEPS  # noqa: E402
 from kckf_jax._filter import SensorSeries, hall_measurements  # noqa: E402
 from kckf_jax._fit import Batch, loss_fn  # noqa: E402
 from kckf_jax._model import structure  # noqa: E402
-from kckf_jax._stream import PacketParser, StreamingFilter  # noqa: E402
+from kckf_jax._stream import HOST_CHECK_EVERY, PacketParser, StreamingFilter  # noqa: E402
 
 ROBOTS = {"bench": "x,y,x,y", "3d": "xyz,xyz,xyz,xyz"}
 DT = 0.01
@@ -260,15 +260,30 @@ def flops_bytes(robot: Robot, dtype_bytes: int) -> dict:
 
 
 def machine_rates() -> dict:
-    """Measured float32 matmul rate and memory bandwidth of this machine (via XLA)."""
+    """Measured float32 matmul rate and memory bandwidth of this machine (via XLA).
+
+    Two bandwidths: ``copy_inplace`` (read and write a 256 MB array in place, its buffer
+    donated: the memory system's rate, used for the limit) and ``copy_fresh`` (the same into
+    a newly allocated output, as every jitted call returns; on this VM the first touch of
+    fresh pages costs most of that time)."""
     n = 2048
     a = jnp.ones((n, n), jnp.float32)
     mm = jax.jit(lambda a: a @ a)
     _, t, _ = timed(lambda: mm(a), repeats=5)
-    big = jnp.ones((64 << 20) // 4, jnp.float32)
+    nbytes = 256 << 20
+    big = jnp.ones(nbytes // 4, jnp.float32)
     cp = jax.jit(lambda x: x * 1.0001)
     _, tc, _ = timed(lambda: cp(big), repeats=5)
-    return {"matmul_gflops_f32": 2 * n**3 / t / 1e9, "copy_gbytes_per_s": 2 * big.nbytes / tc / 1e9}
+    ip = jax.jit(lambda x: x * 1.0001, donate_argnums=0)
+    buf = [jnp.ones(nbytes // 4, jnp.float32)]
+
+    def inplace():
+        buf[0] = ip(buf[0])
+        return buf[0]
+
+    _, ti, _ = timed(inplace, repeats=5)
+    return {"matmul_gflops_f32": 2 * n**3 / t / 1e9, "copy_inplace_gbytes_per_s": 2 * nbytes / ti
+            / 1e9, "copy_fresh_gbytes_per_s": 2 * nbytes / tc / 1e9}
 
 
 # --------------------------------------------------------------------------- cases
@@ -385,23 +400,35 @@ def run_robot(name: str, spec: str, args, tmp: str, dtype) -> dict:
         cases["gradient"] = grad
 
         # ---- streaming latency (low_latency() ran at import, before any computation)
-        sf = StreamingFilter(params)
-        sf.warmup()
+        # A live stream at a constant rate: the first HEAD_ROWS + 2 checks' packets (20 s
+        # at 100 Hz) go untimed, while the covariance converges; the next ones are timed.
+        warm = HEAD_ROWS[np.dtype(dtype)] + 2 * HOST_CHECK_EVERY
+        n_lat = min(5000, L - warm)
         parser = PacketParser(robot)
         pk = []
-        for i in range(min(5000, L)):
+        for i in range(warm + n_lat):
             obj = {"t": float(s.t[i])}
             obj.update(dict(zip(robot.gyro_names, s.gyro[i].tolist())))
             obj.update(dict(zip(robot.hall_names, s.hall_v[i].tolist())))
             pk.append(parser.parse(json.dumps(obj).encode()))
-        lat = []
-        for q in pk:
-            t0 = time.perf_counter()
-            sf.push(q)
-            lat.append(time.perf_counter() - t0)
-        lat = np.asarray(lat) * 1e6
-        cases["streaming_latency_us"] = {"kckf-jax StreamingFilter.push": {
-            "median": float(np.median(lat)), "p99": float(np.percentile(lat, 99))}}
+        lat_cases = {}
+        for label, host in (("kckf-jax StreamingFilter.push", True),
+                            ("kckf-jax StreamingFilter.push, device step only", False)):
+            sf = StreamingFilter(params, host_path=host)
+            sf.warmup()
+            for q in pk[:warm]:
+                sf.push(q)
+            lat, on_host = [], 0
+            for q in pk[warm:]:
+                t0 = time.perf_counter()
+                sf.push(q)
+                lat.append(time.perf_counter() - t0)
+                on_host += sf.on_host
+            lat = np.asarray(lat) * 1e6
+            lat_cases[label] = {"median": float(np.median(lat)),
+                                "p99": float(np.percentile(lat, 99)),
+                                "fraction_on_host": on_host / len(lat), "packets": len(lat)}
+        cases["streaming_latency_us"] = lat_cases
     else:
         cases["streaming_latency_us"] = {
             "filterpy predict+update": {"median": float(np.median(lat_fp) * 1e6),
@@ -440,6 +467,9 @@ def ratios(res: dict) -> dict:
     ours = lat["kckf-jax StreamingFilter.push"]["float32"]["median"]
     out["streaming: filterpy median / kckf-jax median"] = (
         lat["filterpy predict+update"]["float64"]["median"] / ours)
+    out["streaming: filterpy median / kckf-jax device-step median"] = (
+        lat["filterpy predict+update"]["float64"]["median"]
+        / lat["kckf-jax StreamingFilter.push, device step only"]["float32"]["median"])
     out["streaming: numpy median / kckf-jax median"] = (
         lat["numpy loop step"]["float64"]["median"] / ours)
     return out
@@ -488,7 +518,7 @@ def main():
         res = merge(worker["float64"][name], worker["float32"][name])
         res["ratios"] = ratios(res)
         lim = res["limit"]["float32"]
-        peak, bw = rates["matmul_gflops_f32"] * 1e9, rates["copy_gbytes_per_s"] * 1e9
+        peak, bw = rates["matmul_gflops_f32"] * 1e9, rates["copy_inplace_gbytes_per_s"] * 1e9
         lim["full_step_limit_steps_per_s"] = min(peak / lim["full_step_flops"],
                                                  bw / lim["bytes_per_step"])
         lim["steady_step_limit_steps_per_s"] = min(peak / lim["steady_step_flops"],
@@ -496,6 +526,9 @@ def main():
         long = res["cases"]["long_session"]
         lim["auto_fraction_of_steady_limit"] = (
             long["kckf-jax auto"]["float32"]["steps_per_s"] / lim["steady_step_limit_steps_per_s"])
+        lim["vmapped_auto_fraction_of_steady_limit"] = (
+            res["cases"]["vmapped_trials"]["kckf-jax auto"]["float32"]["trial_steps_per_s"]
+            / lim["steady_step_limit_steps_per_s"])
         lim["sequential_fraction_of_full_limit"] = (
             long["kckf-jax sequential"]["float32"]["steps_per_s"]
             / lim["full_step_limit_steps_per_s"])
@@ -504,8 +537,9 @@ def main():
         print(json.dumps(doc, indent=2, default=float))
         return
     print(f"{doc['machine']['cpu']}, {doc['machine']['cores']} cores, jax {doc['machine']['jax']}"
-          f"; matmul {rates['matmul_gflops_f32']:.0f} GFLOP/s, copy "
-          f"{rates['copy_gbytes_per_s']:.1f} GB/s")
+          f"; matmul {rates['matmul_gflops_f32']:.0f} GFLOP/s, copy in place "
+          f"{rates['copy_inplace_gbytes_per_s']:.1f} GB/s, into a fresh buffer "
+          f"{rates['copy_fresh_gbytes_per_s']:.1f} GB/s")
     for name, res in doc["robots"].items():
         print(f"\n== {name} ({res['robot']}, {res['n_states_paper']} states) ==")
         for case, rows in res["cases"].items():
