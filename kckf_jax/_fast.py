@@ -388,11 +388,12 @@ def _two_phase(params: Params, series: SensorSeries, method: str, state: FilterS
     return final, est, change
 
 
-def _steady_parts(params: Params, series: SensorSeries, method: str, state: FilterState,
-                  remat_chunk: int | None = None):
-    """The steady path without its fallback: ``(final, estimate, relative covariance change
-    at the switch)``. ``series`` must be longer than ``STEADY_STEPS`` rows."""
-    T = series.dt.shape[0]
+def _steady_head(params: Params, series: SensorSeries, method: str, state: FilterState,
+                 remat_chunk: int | None = None):
+    """The steady path's first part: the sequential filter over the first
+    ``HEAD_ROWS[dtype]`` rows, the converged map after them and the covariance's relative
+    change there (the switch test). Returns ``(series, mid, est_head, (P_ss, A, B, C),
+    change)`` with ``series`` cast to the state's dtype."""
     dtype = state.z.dtype
     L = _head_rows(dtype)
     st = structure(params.robot, method)
@@ -404,6 +405,16 @@ def _steady_parts(params: Params, series: SensorSeries, method: str, state: Filt
     row0 = jax.tree_util.tree_map(lambda x: x[0], row0)
     P_ss, A, B, C = _maps(params, st, mid.P, row0)
     change = jnp.max(jnp.abs(P_ss - mid.P)) / jnp.max(jnp.abs(P_ss))
+    return series, mid, est_head, (P_ss, A, B, C), change
+
+
+def _steady_tail(params: Params, series: SensorSeries, method: str, mid: FilterState,
+                 est_head: Estimate, maps) -> tuple[FilterState, Estimate]:
+    """The steady path's second part: the converged map over the rows after the head."""
+    T = series.dt.shape[0]
+    L = est_head.angles.shape[0]
+    st = structure(params.robot, method)
+    P_ss, A, B, C = maps
     one = jax.tree_util.tree_map(lambda x: x[None], series)
     angles, bias, z = _steady_mean(params, st, one, mid.z[None], mid.gyro_hold[None], (A, B, C),
                                    done=(est_head.angles[None], est_head.bias[None]))
@@ -411,9 +422,8 @@ def _steady_parts(params: Params, series: SensorSeries, method: str, state: Filt
     # The covariance (so the std) is constant from here on.
     std = block_estimate(st, z, P_ss).angle_std
     std = jnp.concatenate([est_head.angle_std, jnp.broadcast_to(std, (T - L,) + std.shape)])
-    est = Estimate(angles, std, bias)
     held = _last_finite(series.gyro[L:], mid.gyro_hold)
-    return FilterState(z, P_ss, held), est, change
+    return FilterState(z, P_ss, held), Estimate(angles, std, bias)
 
 
 def _tol(dtype) -> float:
@@ -431,8 +441,11 @@ def steady_filter(params: Params, series: SensorSeries, method: str = "kckf",
         state = init_state(params, method)
     if series.dt.shape[0] <= STEADY_STEPS:
         return scan_filter(params, series, method, state)
-    final, est, change = _steady_parts(params, series, method, state)
-    return jax.lax.cond(change <= _tol(state.z.dtype), lambda: (final, est),
+    # The tail runs inside the branch: a branch that only passed on arrays computed before
+    # the cond would copy every estimate (a third of the path's time for long recordings).
+    series, mid, est_head, maps, change = _steady_head(params, series, method, state)
+    return jax.lax.cond(change <= _tol(state.z.dtype),
+                        lambda: _steady_tail(params, series, method, mid, est_head, maps),
                         lambda: scan_filter(params, series, method, state))
 
 
@@ -475,10 +488,13 @@ def steady_batch(params: Params, series: SensorSeries, method: str = "kckf",
     Bt = series.dt.shape[0]
     z0 = jnp.broadcast_to(state.z, (Bt,) + state.z.shape)
     hold0 = jnp.broadcast_to(state.gyro_hold, (Bt,) + state.gyro_hold.shape)
-    angles, bias, _ = _steady_mean(params, st, series, z0, hold0, (A, B, C), head_maps)
-    std = jnp.concatenate([std_head, jnp.broadcast_to(std_tail, (T - L,) + std_tail.shape)])
-    est = Estimate(angles, jnp.broadcast_to(std, angles.shape), bias)
-    return jax.lax.cond(change <= _tol(dtype), lambda: est, sequential)
+
+    def steady():  # inside the branch, as in steady_filter
+        angles, bias, _ = _steady_mean(params, st, series, z0, hold0, (A, B, C), head_maps)
+        std = jnp.concatenate([std_head, jnp.broadcast_to(std_tail, (T - L,) + std_tail.shape)])
+        return Estimate(angles, jnp.broadcast_to(std, angles.shape), bias)
+
+    return jax.lax.cond(change <= _tol(dtype), steady, sequential)
 
 
 def choose_path(params: Params, series: SensorSeries, method: str, path: str = "auto") -> str:
