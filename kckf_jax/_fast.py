@@ -187,20 +187,17 @@ def _readings_maps(params: Params, st, dtype):
     return used, jnp.asarray(Jr, dtype), jax.jacfwd(readings)(jnp.zeros(M, dtype))
 
 
-def _rank_one_sum(x, W):
-    """``U[p, a, t, b] = sum_i x[i, t, b] W[(t,) i, p, a]`` for readings ``x`` ``(I, T, B)``
-    and a map ``W`` ``(I, P, Nz)`` (or one per row, ``(T, I, P, Nz)``), written as one
-    broadcast product per ``i``: XLA fuses the terms into a single loop, vectorised over
-    rows and trials (the innermost axes), where a ``dot`` with these small inner dimensions
-    costs several times more on a CPU."""
-    def w(i):
-        return W[i][:, :, None, None] if W.ndim == 3 else jnp.moveaxis(W[:, i], 0, 2)[..., None]
-
-    return sum(x[i][None, None] * w(i) for i in range(x.shape[0]))
-
-
-#: Trial-rows per block of the steady path's mean: a block's readings, inputs and states
-#: stay in cache, and the per-block dispatch (a few kernels) is spread over many rows.
+#: Rows per chunk of the steady path's mean: a chunk's estimates are one matrix product of its
+#: raw readings and the state entering it (``_chunk_operator``). A longer chunk costs more
+#: arithmetic per row (the product is ``L`` rows by ``L`` rows) but fewer carried states;
+#: 8 measured fastest of 4, 8 and 16 for the bench and the 3D robot (docs/performance.md).
+CHUNK_ROWS = 8
+#: The carried states are solved for in groups of this many chunks (``_carries``: the same
+#: construction one level up), until at most ``CARRY_SCAN`` remain for a plain scan.
+CARRY_GROUP = 16
+CARRY_SCAN = 256
+#: Trial-rows per block of the steady path's mean: a block's readings and products stay in
+#: cache, and estimates are written into the outputs in place.
 MEAN_BLOCK = 1 << 16
 
 
@@ -208,119 +205,242 @@ def _head_rows(dtype) -> int:
     return HEAD_ROWS.get(np.dtype(dtype), STEADY_STEPS)
 
 
-def _block_rows(trials: int, head: int | None) -> int:
-    """Rows per block for ``trials`` trials: a power of two, at least 256 and, with a head of
-    per-row maps, at most its ``head`` rows (which then split into whole blocks)."""
-    rows = max(256, 1 << int(np.log2(max(MEAN_BLOCK // trials, 1))))
-    return int(rows if head is None else min(head, rows))
+def _block_rows(trials: int) -> int:
+    """Rows per block for ``trials`` trials: a power of two, at least 256."""
+    return max(256, 1 << int(np.log2(max(MEAN_BLOCK // trials, 1))))
+
+
+def _output_map(st) -> np.ndarray:
+    """``Tout`` (``2K x P x Nz``): the angles, then the biases, as sums over block states."""
+    Tm = np.asarray(st.T)
+    K, m1 = len(st.block_of), st.m + 1
+    out = np.zeros((2 * K, st.angle_index.shape[0], st.n_z))
+    for k, (p, i) in enumerate(zip(st.block_of, st.slot_of)):
+        out[k, p], out[K + k, p] = Tm[i], Tm[m1 + i]
+    return out
+
+
+def _chunk_operator(A, Wg, Wh, A_next, Wg_next, Tout):
+    """One chunk of ``L`` rows as matrices, from its rows' maps.
+
+    Row ``j`` of the chunk: ``z_j = A_j z_{j-1} + Wg_j g_{j-1} + Wh_j h_j`` (``A`` ``L x P x
+    Nz x Nz``, ``Wg`` ``L x Gu x P x Nz``, ``Wh`` ``L x M x P x Nz``; ``g`` the used gyro
+    columns, ``h`` the Hall angles). The chunk is entered with the *prediction* ``s = A_0
+    z_{-1} + Wg_0 g_{-1}``, so it needs no reading of the chunk before; then ``z_j = Phi(j, 0)
+    s + local_j``, with ``Phi(j, i) = A_j ... A_{i+1}`` and ``local_j`` linear in the chunk's
+    own readings. With ``x`` the chunk's readings row by row (``[g_i, h_i]``, flattened) and
+    ``s`` flattened (``q = P Nz``), all as row vectors:
+
+    * estimates (``L x 2K``, flattened): ``[x, s] @ GS``;
+    * the prediction entering the next chunk (whose first row has maps ``A_next``,
+      ``Wg_next``): ``s @ Phi + x @ E``.
+
+    Returns ``(GS, E, Phi)``: ``(L I + q) x (L 2K)``, ``L I x q`` and ``q x q``."""
+    L, P, nz, _ = A.shape
+    dtype = A.dtype
+    Tout = jnp.asarray(Tout, dtype)
+    eye = jnp.broadcast_to(jnp.eye(nz, dtype=dtype), (P, nz, nz))
+    zero = jnp.zeros((P, nz, nz), dtype)
+
+    def mm(X, Y):  # per block X Y, as broadcast products (a dot of 5 x 5 blocks is slow)
+        return sum(X[..., :, b, None] * Y[..., b, None, :] for b in range(nz))
+
+    rows = []
+    for j in range(L):
+        rows.append([eye if i == j else zero if i > j else mm(A[j], rows[j - 1][i])
+                     for i in range(L)])
+    Phi = jnp.stack([jnp.stack(r) for r in rows])  # (j, i, P, Nz, Nz): Phi(j, i)
+    def mv(X, W):  # (..., P, Nz, Nz) times (..., F, P, Nz) -> (..., F, P, Nz)
+        return sum(X[..., None, :, :, b] * W[..., :, :, b, None] for b in range(nz))
+
+    Zh = mv(Phi, Wh[None])  # h_i -> z_j: (j, i, M, P, Nz)
+    # g_i enters at row i + 1: through Phi(j, i + 1) Wg_{i+1}, nothing for i = L - 1.
+    Phi1 = jnp.concatenate([Phi[:, 1:], jnp.zeros_like(Phi[:, :1])], axis=1)
+    Wg1 = jnp.concatenate([Wg[1:], jnp.zeros_like(Wg[:1])])
+    Zg = mv(Phi1, Wg1[None])
+    Z = jnp.concatenate([Zg, Zh], axis=2)  # (j, i, I, P, Nz)
+    n_in = Z.shape[2]
+    G = jnp.einsum("jifpa,opa->ifjo", Z, Tout).reshape(L * n_in, -1)
+    S = jnp.einsum("jpab,opa->pbjo", Phi[:, 0], Tout).reshape(P * nz, -1)
+    Eg = mv(A_next, Zg[L - 1]).at[L - 1].add(Wg_next)
+    Eh = mv(A_next, Zh[L - 1])
+    E = jnp.concatenate([Eg, Eh], axis=1).reshape(L * n_in, P * nz)
+    Phi_c = mm(A_next, Phi[L - 1, 0])
+    # As a right multiplier of the flattened row vector: block diagonal, transposed blocks.
+    Phi_r = jnp.zeros((P, nz, P, nz), dtype).at[np.arange(P), :, np.arange(P), :].set(
+        jnp.swapaxes(Phi_c, 1, 2)).reshape(P * nz, P * nz)
+    return jnp.concatenate([G, S]), E, Phi_r
+
+
+def _matrix_powers(Phi, n: int):
+    """``Phi^0 .. Phi^n`` stacked."""
+    out = [jnp.eye(Phi.shape[0], dtype=Phi.dtype)]
+    for _ in range(n):
+        out.append(out[-1] @ Phi)
+    return jnp.stack(out)
+
+
+def _carries(Phi, e, s0):
+    """The states entering each chunk: ``s_{c+1} = s_c Phi + e_c`` (row vectors) for ``e``
+    ``(B, C, q)`` from ``s0`` ``(B, q)``. Returns ``(ss, s_C)``, ``ss`` ``(B, C, q)`` the
+    state entering chunk ``c``.
+
+    At most ``CARRY_SCAN`` chunks: a scan. More: in groups of ``n = CARRY_GROUP`` chunks,
+    ``s_{gn+j} = t_g Phi^j + sum_{i<j} e_{gn+i} Phi^{j-1-i}``: one matrix product gives every
+    group's local part and its end, and the states ``t_g`` entering the groups are the same
+    problem with ``Phi^n``, ``n`` times shorter."""
+    B, C, q = e.shape
+    if C <= CARRY_SCAN:
+        def f(s, e_c):
+            return sum(s[:, i, None] * Phi[i] for i in range(q)) + e_c, s
+
+        s_end, ss = jax.lax.scan(f, s0, jnp.moveaxis(e, 1, 0))
+        return jnp.moveaxis(ss, 0, 1), s_end
+    n = CARRY_GROUP
+    groups = C // n + 1  # at least one padded chunk, so s_C is some group's local state
+    e = jnp.pad(e, ((0, 0), (0, groups * n - C), (0, 0)))
+    pw = _matrix_powers(Phi, n)
+    i, j = np.arange(n)[:, None], np.arange(n)[None, :]
+    local = jnp.where((i < j)[..., None, None], pw[np.clip(j - 1 - i, 0, n)], 0.0)
+    local = jnp.transpose(local, (0, 2, 1, 3)).reshape(n * q, n * q)
+    end = pw[n - 1 - np.arange(n)].reshape(n * q, q)
+    y = e.reshape(B, groups, n * q) @ jnp.concatenate([local, end], axis=1)
+    tt, _ = _carries(pw[n], y[..., n * q:], s0)
+    ss = y[..., :n * q] + tt @ jnp.transpose(pw[:n], (1, 0, 2)).reshape(q, n * q)
+    ss = ss.reshape(B, groups * n, q)
+    return ss[:, :C], ss[:, C]
 
 
 def _steady_mean(params: Params, st, series: SensorSeries, z0, hold0, maps, head=None,
                  done=None):
-    """The mean of the steady path over a batch of trials, from dense maps of the raw readings.
+    """The mean of the steady path over a batch of trials, chunk by chunk as matrix products.
 
     Row ``k``: ``z_k = A z_{k-1} + g_{k-1}[used] Wg + hall_angle(V_k) Wh`` with ``(A, B, C)``
-    the converged map (``maps``); the first ``L`` rows use per-row maps ``head = (As, Bs,
-    Cs)`` (leading axis ``L``, a power of two) when given. ``Wg = B Jr`` and
-    ``Wh = C Jh`` fold the rate differences and the fusion of each Hall pair into the map, so
-    a row costs a few fused broadcast products on its raw readings and the scan of ``z``.
+    the converged map (``maps``), ``Wg = B Jr`` and ``Wh = C Jh`` (the rate differences and
+    the fusion of each Hall pair folded into the map); the first rows use per-row maps
+    ``head = (As, Bs, Cs)`` (leading axis, a multiple of ``CHUNK_ROWS``) when given.
+
+    Chunks of ``L = CHUNK_ROWS`` rows (``_chunk_operator``): a first pass gives each chunk's
+    contribution to the state entering the next one (one matrix product of the readings),
+    ``_carries`` solves for the states entering every chunk, and a second pass gives the
+    estimates (one matrix product of the readings and that state); the last 1 to ``L`` rows
+    go row by row, which gives the final state. A sequential scan of the rows does far less
+    arithmetic but costs XLA's loop overhead per row; the matrix products run at 100-300
+    GFLOP/s here. The converged rows go in blocks of ``_block_rows`` rows, so a block's
+    readings stay in cache and estimates are written into the outputs in place.
 
     ``series`` has a leading trial axis ``B``; ``z0`` is ``(B, P, Nz)`` and ``hold0``
-    ``(B, G)``. The rows go in blocks (``_block_rows``): a block's readings are sliced out,
-    laid out (row, feature, trial) so that the scan updates every trial with vector
-    instructions, and its estimates written into the outputs in place; no intermediate the
-    size of the recording exists. ``done = (angles, biases)`` (``(B, F, K)`` each) are the
-    estimates of the first ``F`` rows, already filtered: the mean starts at row ``F`` (with
-    ``z0`` and ``hold0`` the state there) and the outputs are filled in after them. Returns
-    ``(angles, biases, z_last)``, angles and biases ``(B, T, K)``."""
+    ``(B, G)``. ``done = (angles, biases)`` (``(B, F, K)`` each) are the estimates of the
+    first ``F`` rows, already filtered: the mean starts at row ``F`` (with ``z0`` and
+    ``hold0`` the state there) and the outputs are filled in after them. Returns ``(angles,
+    biases, z_last)``, angles and biases ``(B, T, K)``."""
     dtype = z0.dtype
     used, Jr, Jh = _readings_maps(params, st, dtype)
     Bt, P, nz = z0.shape
+    q = P * nz
     T = series.dt.shape[1]
-    R = _block_rows(Bt, None if head is None else head[0].shape[0])
     K = len(st.block_of)
-    coeffs = [c[:, None, None] for c in params.hall_coeffs]
+    L = CHUNK_ROWS
+    n_in = len(used) + params.robot.n_hall
+    Tout = _output_map(st)
 
     def weights(B, C):  # (..., P, nz, m1), (..., P, nz, m) -> (..., Gu, P, nz), (..., M, P, nz)
         return (jnp.einsum("...pij,pjg->...gpi", B, Jr), jnp.einsum("...pij,pjm->...mpi", C, Jh))
 
-    def step(z, row):  # z (P, nz, B); A_k (P, nz, nz)
-        A_k, u = row
-        z = sum(A_k[:, :, j, None] * z[:, j, None, :] for j in range(nz)) + u
-        return z, z
-
-    def block(carry, start, n, maps_k):
-        """Rows ``start .. start + n`` (``n`` static) with maps ``(A, Wg, Wh)``, each with a
-        leading row axis when per-row."""
-        z, g_last, ang_out, bias_out = carry
-        gyro = jax.lax.dynamic_slice_in_dim(series.gyro, start, n, axis=1)
+    def readings(start, n):  # rows start .. start + n: (B, n, I), used gyro columns first
+        gyro = jax.lax.dynamic_slice_in_dim(series.gyro, start, n, axis=1)[..., used]
         hall = jax.lax.dynamic_slice_in_dim(series.hall_v, start, n, axis=1)
-        # Feature-major blocks (feature, row, trial): every product below is vectorised over
-        # rows and trials. One concatenation lays the block out in memory (a plain transpose
-        # would be folded into the consumers as strided reads), and the barriers keep the
-        # exponentials from being evaluated once per output coordinate.
-        g = jnp.transpose(gyro[..., used], (2, 1, 0))  # (Gu, n, B)
-        x = jax.lax.optimization_barrier(jnp.concatenate(
-            [jnp.concatenate([g_last[:, None], g[:, :-1]], axis=1),
-             jnp.transpose(hall, (2, 1, 0))]))
-        Gu = len(used)
-        angle = jax.lax.optimization_barrier(hall_angle(x[Gu:], *coeffs))  # (M, n, B)
-        A_k, Wg_k, Wh_k = maps_k
-        U = jnp.moveaxis(_rank_one_sum(x[:Gu], Wg_k) + _rank_one_sum(angle, Wh_k), 2, 0)
-        if A_k.ndim == 3:
-            z, Z = jax.lax.scan(lambda z, u: step(z, (A_k, u)), z, U)
-        else:
-            z, Z = jax.lax.scan(step, z, (A_k, U))
-        a, b = _block_outputs(st, Z)
-        ang_out = jax.lax.dynamic_update_slice_in_dim(ang_out, a, start, axis=1)
-        bias_out = jax.lax.dynamic_update_slice_in_dim(bias_out, b, start, axis=1)
-        return z, g[:, -1], ang_out, bias_out
+        return jnp.concatenate([gyro, hall_angle(hall, *params.hall_coeffs)], axis=2)
 
+    def write(outs, y, start):  # y (B, n, 2K): angles then biases
+        return tuple(jax.lax.dynamic_update_slice_in_dim(o, y[..., k * K:(k + 1) * K], start,
+                                                         axis=1) for k, o in enumerate(outs))
+
+    def entering(A_k, Wg_k, z, g):  # the prediction entering a row: (B, q)
+        return (jnp.einsum("pab,Bpb->Bpa", A_k, z)
+                + jnp.einsum("Bg,gpa->Bpa", g, Wg_k)).reshape(Bt, q)
+
+    A, B, C = maps
+    Wg, Wh = weights(B, C)
     out = jnp.zeros((Bt, T, K), dtype)
     F = 0
-    ang_out = bias_out = out
+    outs = (out, out)
     if done is not None:
         F = done[0].shape[1]
-        ang_out = jax.lax.dynamic_update_slice_in_dim(out, done[0], 0, axis=1)
-        bias_out = jax.lax.dynamic_update_slice_in_dim(out, done[1], 0, axis=1)
-    carry = (jnp.moveaxis(z0, 0, -1), hold0[:, used].T, ang_out, bias_out)
-    L = F
-    if head is not None:
-        As, Bs, Cs = head
-        L = F + As.shape[0]
-        Wgs, Whs = weights(Bs, Cs)
+        outs = tuple(jax.lax.dynamic_update_slice_in_dim(out, d, 0, axis=1) for d in done)
+    g_prev = hold0[:, used]
+    if head is None:
+        s = entering(A, Wg, z0, g_prev)
+    else:
+        As, Wgs, Whs = (head[0],) + weights(head[1], head[2])
+        Lh = As.shape[0]
+        # Per-row maps: a scan of the rows, every trial at once (trials innermost). Chunk
+        # operators would need building per chunk, which costs more than these rows.
+        x = jnp.moveaxis(readings(F, Lh), 0, -1)  # (Lh, I, B)
+        Gu = len(used)
+        g = jnp.concatenate([g_prev.T[None], x[:-1, :Gu]])  # each row's previous rates
+        U = (sum(g[:, f, None, None, :] * Wgs[:, f, :, :, None] for f in range(Gu))
+             + sum(x[:, Gu + f, None, None, :] * Whs[:, f, :, :, None]
+                   for f in range(n_in - Gu)))  # (Lh, P, Nz, B)
 
-        def head_block(i, carry):
-            start = i * R
-            maps_k = tuple(jax.lax.dynamic_slice_in_dim(x, start, R) for x in (As, Wgs, Whs))
-            return block(carry, F + start, R, maps_k)
+        def row(z, r):  # z (P, Nz, B)
+            A_k, u = r
+            z = sum(A_k[:, :, j, None] * z[:, j, None, :] for j in range(nz)) + u
+            return z, z
 
-        carry = jax.lax.fori_loop(0, (L - F) // R, head_block, carry)
-    A, B, C = maps
-    maps_ss = (A,) + weights(B, C)
-    n_full = (T - L) // R
-    if n_full:
-        carry = jax.lax.fori_loop(0, n_full, lambda i, c: block(c, L + i * R, R, maps_ss), carry)
-    if L + n_full * R < T:
-        carry = block(carry, L + n_full * R, T - L - n_full * R, maps_ss)
-    z, _, angles, bias = carry
-    return angles, bias, jnp.moveaxis(z, -1, 0)
+        z, Z = jax.lax.scan(row, jnp.moveaxis(z0, 0, -1), (As, U))
+        y = jnp.einsum("kpaB,opa->Bko", Z, jnp.asarray(Tout, dtype))
+        outs = write(outs, y, F)
+        F = F + Lh
+        z0, g_prev = jnp.moveaxis(z, -1, 0), x[-1, :Gu].T
+        s = entering(A, Wg, z0, g_prev)
+    # The converged rows: C whole chunks, then the last 1 .. L rows one by one.
+    n = T - F
+    n_chunks = (n - 1) // L
+    GS, E, Phi = _chunk_operator(*(jnp.broadcast_to(X, (L,) + X.shape) for X in (A, Wg, Wh)),
+                                 A, Wg, Tout)
+    if n_chunks:
+        R = _block_rows(Bt)
+        rows = n_chunks * L
+        blocks = [(i * R, R) for i in range(rows // R)]
+        full = len(blocks)
+        tail = (full * R, rows - full * R) if rows % R else None
 
+        def pass_e(i, e_all, block):
+            start, m = block
+            x = readings(F + start, m).reshape(Bt, m // L, L * n_in)
+            return jax.lax.dynamic_update_slice_in_dim(e_all, x @ E, start // L, axis=1)
 
-def _block_outputs(st, Z):
-    """Angles and biases ``(B, n, K)`` from block states ``Z`` ``(n, P, Nz, B)``: each is a
-    short sum over one block's coordinates (``xb = T z``), written term by term (``T`` is
-    sparse)."""
-    m1 = st.m + 1
-    Tm = np.asarray(st.T)
+        def pass_out(i, outs, block, ss):
+            start, m = block
+            x = readings(F + start, m).reshape(Bt, m // L, L * n_in)
+            s_k = jax.lax.dynamic_slice_in_dim(ss, start // L, m // L, axis=1)
+            y = jnp.concatenate([x, s_k], axis=2) @ GS
+            return write(outs, y.reshape(Bt, m, 2 * K), F + start)
 
-    def coordinate(p, row):
-        terms = [float(Tm[row, j]) * Z[:, p, j] for j in range(st.n_z) if Tm[row, j] != 0.0]
-        return sum(terms) if terms else jnp.zeros_like(Z[:, p, 0])
-
-    ang = jnp.stack([coordinate(p, i) for p, i in zip(st.block_of, st.slot_of)], axis=-1)
-    bias = jnp.stack([coordinate(p, m1 + i) for p, i in zip(st.block_of, st.slot_of)], axis=-1)
-    return jnp.moveaxis(ang, 1, 0), jnp.moveaxis(bias, 1, 0)
+        e_all = jnp.zeros((Bt, n_chunks, q), dtype)
+        if full:
+            e_all = jax.lax.fori_loop(0, full, lambda i, e: pass_e(i, e, (i * R, R)), e_all)
+        if tail:
+            e_all = pass_e(full, e_all, tail)
+        ss, s = _carries(Phi, e_all, s)
+        if full:
+            outs = jax.lax.fori_loop(0, full, lambda i, o: pass_out(i, o, (i * R, R), ss),
+                                     outs)
+        if tail:
+            outs = pass_out(full, outs, tail, ss)
+        F = F + rows
+    x = readings(F, T - F)
+    Gu = len(used)
+    z = s.reshape(Bt, P, nz) + jnp.einsum("Bm,mpa->Bpa", x[:, 0, Gu:], Wh)
+    zs = [z]
+    for k in range(1, T - F):
+        z = entering(A, Wg, z, x[:, k - 1, :Gu]).reshape(Bt, P, nz) + jnp.einsum(
+            "Bm,mpa->Bpa", x[:, k, Gu:], Wh)
+        zs.append(z)
+    y = jnp.einsum("kBpa,opa->Bko", jnp.stack(zs), jnp.asarray(Tout, dtype))
+    outs = write(outs, y, F)
+    return outs[0], outs[1], z
 
 
 def _covariance_phase(params: Params, st, P0, head):

@@ -109,6 +109,42 @@ def test_steady_blocks_whole_and_partial_float64(monkeypatch):
         np.testing.assert_allclose(a, b, atol=1e-8, rtol=0)
 
 
+def test_steady_chunks_carried_in_groups_float64(monkeypatch):
+    """The states entering the chunks solved in nested groups (several levels, a chunk count
+    that is no multiple of the group), small blocks, and a row count that leaves a partial
+    last chunk: estimates and final state equal the sequential filter's; so does the
+    gradient of a loss through the batch path."""
+    monkeypatch.setattr(_fast, "MEAN_BLOCK", 512)
+    monkeypatch.setattr(_fast, "CARRY_SCAN", 3)
+    monkeypatch.setattr(_fast, "CARRY_GROUP", 4)
+    robot = Robot.from_spec("xz,y")
+    T = STEADY_STEPS + 1805
+    s, series = regular(robot, 5, T)
+    params = Params.paper_defaults(robot, s.hall_models, dtype=jnp.float64)
+    ref_final, ref = run_filter(params, series, "kckf", path="sequential")
+    final, est = run_filter(params, series, "kckf", path="steady")
+    assert not np.array_equal(np.asarray(est.angles), np.asarray(ref.angles))
+    np.testing.assert_allclose(est.angles, ref.angles, atol=1e-8, rtol=0)
+    np.testing.assert_allclose(est.bias, ref.bias, atol=1e-8, rtol=0)
+    np.testing.assert_allclose(final.z, ref_final.z, atol=1e-8, rtol=0)
+    np.testing.assert_allclose(final.P, ref_final.P, atol=1e-12, rtol=0)
+    np.testing.assert_array_equal(final.gyro_hold, ref_final.gyro_hold)
+    trials = [regular(robot, seed, T)[1] for seed in (5, 6)]
+    batch = jax.tree_util.tree_map(lambda *x: jnp.stack(x), *trials)
+
+    def loss(p, path):
+        return jnp.mean(filter_batch(p, batch, "kckf", path=path).angles ** 2)
+
+    (l_seq, g_seq), (l_fast, g_fast) = (
+        eqx.filter_value_and_grad(lambda p, path=path: loss(p, path))(params)
+        for path in ("sequential", "steady"))
+    np.testing.assert_allclose(l_fast, l_seq, rtol=1e-9)
+    flat_seq = jax.tree_util.tree_leaves(eqx.filter(g_seq, eqx.is_inexact_array))
+    flat_fast = jax.tree_util.tree_leaves(eqx.filter(g_fast, eqx.is_inexact_array))
+    for a, b in zip(flat_fast, flat_seq):
+        np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-9 * float(np.abs(b).max() + 1))
+
+
 def test_batch_with_different_time_steps_is_not_steady():
     """Each trial is regular, but the steps differ: one shared covariance would be wrong."""
     robot = Robot.from_spec("x,y")
