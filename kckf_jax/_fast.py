@@ -318,7 +318,8 @@ def _steady_mean(params: Params, st, series: SensorSeries, z0, hold0, maps, head
     Row ``k``: ``z_k = A z_{k-1} + g_{k-1}[used] Wg + hall_angle(V_k) Wh`` with ``(A, B, C)``
     the converged map (``maps``), ``Wg = B Jr`` and ``Wh = C Jh`` (the rate differences and
     the fusion of each Hall pair folded into the map); the first rows use per-row maps
-    ``head = (As, Bs, Cs)`` (leading axis, a multiple of ``CHUNK_ROWS``) when given.
+    ``head = (As, Bs, Cs)`` (leading row axis) when given: a scan of those rows, every trial
+    at once.
 
     Chunks of ``L = CHUNK_ROWS`` rows (``_chunk_operator``): a first pass gives each chunk's
     contribution to the state entering the next one (one matrix product of the readings),
@@ -341,7 +342,8 @@ def _steady_mean(params: Params, st, series: SensorSeries, z0, hold0, maps, head
     T = series.dt.shape[1]
     K = len(st.block_of)
     L = CHUNK_ROWS
-    n_in = len(used) + params.robot.n_hall
+    Gu = len(used)
+    n_in = Gu + params.robot.n_hall
     Tout = _output_map(st)
 
     def weights(B, C):  # (..., P, nz, m1), (..., P, nz, m) -> (..., Gu, P, nz), (..., M, P, nz)
@@ -377,7 +379,6 @@ def _steady_mean(params: Params, st, series: SensorSeries, z0, hold0, maps, head
         # Per-row maps: a scan of the rows, every trial at once (trials innermost). Chunk
         # operators would need building per chunk, which costs more than these rows.
         x = jnp.moveaxis(readings(F, Lh), 0, -1)  # (Lh, I, B)
-        Gu = len(used)
         g = jnp.concatenate([g_prev.T[None], x[:-1, :Gu]])  # each row's previous rates
         U = (sum(g[:, f, None, None, :] * Wgs[:, f, :, :, None] for f in range(Gu))
              + sum(x[:, Gu + f, None, None, :] * Whs[:, f, :, :, None]
@@ -401,16 +402,15 @@ def _steady_mean(params: Params, st, series: SensorSeries, z0, hold0, maps, head
     if n_chunks:
         R = _block_rows(Bt)
         rows = n_chunks * L
-        blocks = [(i * R, R) for i in range(rows // R)]
-        full = len(blocks)
+        full = rows // R
         tail = (full * R, rows - full * R) if rows % R else None
 
-        def pass_e(i, e_all, block):
+        def pass_e(e_all, block):
             start, m = block
             x = readings(F + start, m).reshape(Bt, m // L, L * n_in)
             return jax.lax.dynamic_update_slice_in_dim(e_all, x @ E, start // L, axis=1)
 
-        def pass_out(i, outs, block, ss):
+        def pass_out(outs, block, ss):
             start, m = block
             x = readings(F + start, m).reshape(Bt, m // L, L * n_in)
             s_k = jax.lax.dynamic_slice_in_dim(ss, start // L, m // L, axis=1)
@@ -419,18 +419,16 @@ def _steady_mean(params: Params, st, series: SensorSeries, z0, hold0, maps, head
 
         e_all = jnp.zeros((Bt, n_chunks, q), dtype)
         if full:
-            e_all = jax.lax.fori_loop(0, full, lambda i, e: pass_e(i, e, (i * R, R)), e_all)
+            e_all = jax.lax.fori_loop(0, full, lambda i, e: pass_e(e, (i * R, R)), e_all)
         if tail:
-            e_all = pass_e(full, e_all, tail)
+            e_all = pass_e(e_all, tail)
         ss, s = _carries(Phi, e_all, s)
         if full:
-            outs = jax.lax.fori_loop(0, full, lambda i, o: pass_out(i, o, (i * R, R), ss),
-                                     outs)
+            outs = jax.lax.fori_loop(0, full, lambda i, o: pass_out(o, (i * R, R), ss), outs)
         if tail:
-            outs = pass_out(full, outs, tail, ss)
+            outs = pass_out(outs, tail, ss)
         F = F + rows
     x = readings(F, T - F)
-    Gu = len(used)
     z = s.reshape(Bt, P, nz) + jnp.einsum("Bm,mpa->Bpa", x[:, 0, Gu:], Wh)
     zs = [z]
     for k in range(1, T - F):
