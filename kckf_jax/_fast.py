@@ -77,13 +77,15 @@ PATHS = ("auto", "sequential", "steady", "parallel")
 CONVERGING_METHODS = ("kckf",)
 
 
-def steady_conditions(params: Params, series: SensorSeries, method: str) -> str | None:
+def steady_conditions(params: Params, series: SensorSeries, method: str,
+                      readings: bool = True) -> str | None:
     """Why the steady path does not apply to these (concrete) inputs, or None if it does.
 
     ``series`` may be one recording or a batch (leading axes): a batch must share one
     constant time step, since ``steady_batch`` runs one covariance phase for all of it.
     Traced inputs (inside ``jit``) pass the data checks unchecked: only the static ones
-    apply, and the caller vouches for the rest."""
+    apply, and the caller vouches for the rest. ``readings=False`` checks the time steps
+    only (``plan_path``: the readings are then checked by the steady path itself)."""
     if method not in FILTER_METHODS:
         return f"method {method!r} is not a Kalman filter"
     if params.hall_noise != "angle":
@@ -92,12 +94,14 @@ def steady_conditions(params: Params, series: SensorSeries, method: str) -> str 
         return "fewer than three rows"
     if any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(series)):
         return None  # under jit the values are unknown: the caller vouches for them
-    used = tuple(int(c) for c in np.unique(np.asarray(params.robot.rate_pairs)))
-    dev, first, gyro_nan, hall_nan = (float(x) for x in _regularity(
-        series.dt, series.gyro, series.hall_v, used))
-    if dev > 1e-9 or not first > 0:
+    dev, first = (float(x) for x in _dt_regularity(series.dt))
+    if not (dev <= 1e-9 and first > 0):  # also false for a NaN step
         return ("the time step is not constant" if np.ndim(series.dt) == 1 else
                 "the time step is not one constant shared by every trial")
+    if not readings:
+        return None
+    used = tuple(int(c) for c in np.unique(np.asarray(params.robot.rate_pairs)))
+    gyro_nan, hall_nan = (bool(x) for x in _readings_missing(series.gyro, series.hall_v, used))
     if gyro_nan:
         return "a gyro reading is missing"
     if hall_nan:
@@ -105,15 +109,20 @@ def steady_conditions(params: Params, series: SensorSeries, method: str) -> str 
     return None
 
 
-@functools.partial(jax.jit, static_argnums=3)
-def _regularity(dt, gyro, hall_v, used: tuple[int, ...]):
+@jax.jit
+def _dt_regularity(dt):
     """On the device, one small transfer back: the largest deviation of a time step (rows
-    after the first) from the first trial's second one, that step, and whether a used gyro
-    or a Hall reading is missing."""
+    after the first) from the first trial's second one, and that step."""
     dt = jnp.reshape(dt, (-1, dt.shape[-1]))
     first = dt[0, 1]
-    return (jnp.max(jnp.abs(dt[:, 1:] - first)), first,
-            jnp.isnan(gyro[..., np.asarray(used)]).any(), jnp.isnan(hall_v).any())
+    return jnp.max(jnp.abs(dt[:, 1:] - first)), first
+
+
+@functools.partial(jax.jit, static_argnums=2)
+def _readings_missing(gyro, hall_v, used: tuple[int, ...]):
+    """Whether a used gyro reading or a Hall reading is missing (a pass over every reading:
+    ``plan_path`` leaves this to the steady path itself)."""
+    return jnp.isnan(gyro[..., np.asarray(used)]).any(), jnp.isnan(hall_v).any()
 
 
 def _held_gyro(gyro: jax.Array, hold0: jax.Array) -> jax.Array:
@@ -748,11 +757,34 @@ def steady_filter(params: Params, series: SensorSeries, method: str = "kckf",
         return scan_filter(params, series, method, state)
     # The tail runs inside the branch: a branch that only passed on arrays computed before
     # the cond would copy every estimate (a third of the path's time for long recordings).
+    return _steady_filter(params, series, method, state)[:2]
+
+
+def steady_filter_checked(params: Params, series: SensorSeries, method: str = "kckf",
+                          state: FilterState | None = None):
+    """``steady_filter`` and whether its result stands: False when the converged map met a
+    missing (or overflowing) reading, which the caller must then filter sequentially
+    (``plan_path``). True when the sequential branch ran (it handles anything)."""
+    if state is None:
+        state = init_state(params, method)
+    if series.dt.shape[0] <= STEADY_STEPS:
+        return scan_filter(params, series, method, state) + (jnp.array(True),)
+    return _steady_filter(params, series, method, state)
+
+
+def _steady_filter(params, series, method, state):
     series, mid, est_head, maps, change = _steady_head(params, series, method, state)
-    return jax.lax.cond(change <= _tol(state.z.dtype),
-                        lambda: _steady_tail(params, series, method, mid, est_head, maps),
-                        lambda: scan_filter(params, series, method, state,
-                                            _fallback_chunk(series.dt.shape[0])))
+
+    def steady():
+        final, est = _steady_tail(params, series, method, mid, est_head, maps)
+        return final, est, jnp.isfinite(final.z).all()
+
+    def sequential():
+        final, est = scan_filter(params, series, method, state,
+                                 _fallback_chunk(series.dt.shape[0]))
+        return final, est, jnp.array(True)
+
+    return jax.lax.cond(change <= _tol(state.z.dtype), steady, sequential)
 
 
 def steady_batch(params: Params, series: SensorSeries, method: str = "kckf",
@@ -766,12 +798,19 @@ def steady_batch(params: Params, series: SensorSeries, method: str = "kckf",
     ``remat_chunk`` applies to the sequential fallback only (``scan_filter``; default
     ``_fallback_chunk``).
     """
+    return steady_batch_checked(params, series, method, remat_chunk)[0]
+
+
+def steady_batch_checked(params: Params, series: SensorSeries, method: str = "kckf",
+                         remat_chunk: int | None = None) -> tuple[Estimate, jax.Array]:
+    """``steady_batch`` and whether its result stands (as ``steady_filter_checked``)."""
     T = series.dt.shape[1]
     state = init_state(params, method)
     dtype = state.z.dtype
 
     def sequential(chunk=remat_chunk or _fallback_chunk(T)):
-        return jax.vmap(lambda s: scan_filter(params, s, method, state, chunk)[1])(series)
+        return (jax.vmap(lambda s: scan_filter(params, s, method, state, chunk)[1])(series),
+                jnp.array(True))
 
     if T <= STEADY_STEPS:
         return sequential(remat_chunk)
@@ -797,9 +836,9 @@ def steady_batch(params: Params, series: SensorSeries, method: str = "kckf",
     hold0 = jnp.broadcast_to(state.gyro_hold, (Bt,) + state.gyro_hold.shape)
 
     def steady():  # inside the branch, as in steady_filter
-        angles, bias, _ = _steady_mean(params, st, series, z0, hold0, (A, B, C), head_maps)
+        angles, bias, z = _steady_mean(params, st, series, z0, hold0, (A, B, C), head_maps)
         std = jnp.concatenate([std_head, jnp.broadcast_to(std_tail, (T - L,) + std_tail.shape)])
-        return Estimate(angles, jnp.broadcast_to(std, angles.shape), bias)
+        return Estimate(angles, jnp.broadcast_to(std, angles.shape), bias), jnp.isfinite(z).all()
 
     return jax.lax.cond(change <= _tol(dtype), steady, sequential)
 
@@ -826,8 +865,28 @@ def choose_path(params: Params, series: SensorSeries, method: str, path: str = "
     return "parallel" if jax.default_backend() != "cpu" else "sequential"
 
 
-def _all_steady(params, series, method) -> bool:
-    return steady_conditions(params, series, method) is None
+def _all_steady(params, series, method, readings: bool = True) -> bool:
+    return steady_conditions(params, series, method, readings) is None
+
+
+def plan_path(params: Params, series: SensorSeries, method: str,
+              path: str = "auto") -> tuple[str, bool]:
+    """``(path, verify)`` for ``run_filter`` and ``filter_batch``: ``choose_path`` without
+    its pass over every reading. For ``"auto"`` on concrete inputs the readings are not
+    checked beforehand (that pass read the whole recording, 10-20 % of the steady path's
+    time); ``verify`` then says the caller must run the checked steady path
+    (``steady_filter_checked``, ``steady_batch_checked``) and take the sequential path if it
+    reports a non-finite state. A missing reading makes the steady path's state NaN from its
+    row on: every product of the map propagates it, so the final state shows it."""
+    traced = any(isinstance(x, jax.core.Tracer)
+                 for x in jax.tree_util.tree_leaves((params, series)))
+    if path != "auto" or method not in CONVERGING_METHODS or traced:
+        # Under a transformation (grad of a loss, say) the check's outcome is a tracer:
+        # check the (concrete) readings beforehand instead.
+        return choose_path(params, series, method, path), False
+    if series.dt.shape[-1] > STEADY_STEPS and _all_steady(params, series, method, False):
+        return "steady", True
+    return choose_path(params, series, method, path), False
 
 
 def parallel_filter(params: Params, series: SensorSeries, method: str = "kckf",

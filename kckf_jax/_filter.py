@@ -358,9 +358,22 @@ def run_filter(
         (5, 4)
     """
     _check_method(method)
-    from ._fast import choose_path
+    from ._fast import plan_path
 
-    return _run_filter(params, series, method, state, choose_path(params, series, method, path))
+    path, verify = plan_path(params, series, method, path)
+    if verify:
+        final, est, ok = _run_filter_checked(params, series, method, state)
+        if bool(ok):
+            return final, est
+        path = "sequential"  # a reading is missing: the sequential filter handles it
+    return _run_filter(params, series, method, state, path)
+
+
+@eqx.filter_jit
+def _run_filter_checked(params, series, method, state):
+    from ._fast import steady_filter_checked
+
+    return steady_filter_checked(params, series, method, state)
 
 
 @eqx.filter_jit
@@ -380,9 +393,22 @@ def filter_batch(params: Params, series: SensorSeries, method: str = "kckf",
                  path: str = "auto") -> Estimate:
     """``run_filter`` over a batch of trials (leading axis ``B``), padded to one length."""
     _check_method(method)
-    from ._fast import choose_path
+    from ._fast import plan_path
 
-    return _filter_batch(params, series, method, choose_path(params, series, method, path))
+    path, verify = plan_path(params, series, method, path)
+    if verify:
+        est, ok = _filter_batch_checked(params, series, method)
+        if bool(ok):
+            return est
+        path = "sequential"  # a reading is missing: the sequential filter handles it
+    return _filter_batch(params, series, method, path)
+
+
+@eqx.filter_jit
+def _filter_batch_checked(params, series, method):
+    from ._fast import steady_batch_checked
+
+    return steady_batch_checked(params, series, method)
 
 
 @eqx.filter_jit

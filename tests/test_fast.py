@@ -188,3 +188,33 @@ def test_unknown_path():
     robot = Robot.from_spec("x")
     with pytest.raises(ValueError, match="path must be one of"):
         run_filter(Params.paper_defaults(robot), regular(robot, 1, 10)[1], path="fast")
+
+
+def test_auto_path_finds_missing_readings_itself():
+    """``"auto"`` checks only the time steps beforehand; a missing reading makes the steady
+    path's state non-finite, and the call is answered by the sequential filter instead."""
+    robot = Robot.from_spec("x,y")
+    T = STEADY_STEPS + 300
+    params = Params.paper_defaults(robot, dtype=jnp.float64)
+    _, series = regular(robot, 11, T)
+    hall = np.asarray(series.hall_v).copy()
+    hall[T - 100, 1] = np.nan  # after the head: a converged chunk row
+    one = SensorSeries(series.dt, series.gyro, jnp.asarray(hall))
+    assert _fast.plan_path(params, one, "kckf") == ("steady", True)
+    assert choose_path(params, one, "kckf") == "sequential"  # the full check still says so
+    _, ref = run_filter(params, one, "kckf", path="sequential")
+    _, est = run_filter(params, one, "kckf")
+    np.testing.assert_array_equal(np.asarray(est.angles), np.asarray(ref.angles))
+    assert np.isfinite(np.asarray(est.angles)).all()
+    trials = [regular(robot, seed, T)[1] for seed in (12, 13)]
+    batch = jax.tree_util.tree_map(lambda *x: jnp.stack(x), *trials)
+    gyro = np.asarray(batch.gyro).copy()
+    used = int(np.asarray(robot.rate_pairs)[0, 0])
+    gyro[1, 50, used] = np.nan  # trial 1, inside the head shared by the batch
+    batch = SensorSeries(batch.dt, jnp.asarray(gyro), batch.hall_v)
+    seq = filter_batch(params, batch, "kckf", path="sequential")
+    fast = filter_batch(params, batch, "kckf")
+    np.testing.assert_array_equal(np.asarray(fast.angles), np.asarray(seq.angles))
+    # The checked path itself does report the missing reading.
+    _, ok = jax.jit(lambda b: _fast.steady_batch_checked(params, b, "kckf"))(batch)
+    assert not bool(ok)
