@@ -24,7 +24,7 @@ Two paths use this:
   inside the same compiled function. A constant map is applied in chunks of ``CHUNK_ROWS``
   rows, each chunk one matrix product of its raw readings and the state entering it
   (``_chunk_operator``), the entering states solved for in nested groups (``_carries``):
-  more arithmetic than a scan of the rows, but in matrix products, which XLA runs at 100-300
+  more arithmetic than a scan of the rows, but in matrix products, which XLA runs at 100-200
   GFLOP/s on a CPU, where a scan pays its loop overhead on every row.
 * ``"parallel"``: anything (missing readings, uneven time steps, the voltage noise model): the
   covariance phase runs over the whole recording, the mean phase by associative scan. On a CPU
@@ -535,14 +535,15 @@ def _steady_mean(params: Params, st, series: SensorSeries, z0, hold0, maps, head
     ``head = (As, Bs, Cs)`` (leading row axis) when given: a scan of those rows, every trial
     at once.
 
-    Chunks of ``L = CHUNK_ROWS`` rows (``_chunk_operator``): a first pass gives each chunk's
-    contribution to the state entering the next one (one matrix product of the readings),
-    ``_carries`` solves for the states entering every chunk, and a second pass gives the
-    estimates (one matrix product of the readings and that state); the last 1 to ``L`` rows
-    go row by row, which gives the final state. A sequential scan of the rows does far less
-    arithmetic but costs XLA's loop overhead per row; the matrix products run at 100-300
-    GFLOP/s here. The converged rows go in blocks of ``_block_rows`` rows, so a block's
-    readings stay in cache and estimates are written into the outputs in place.
+    Chunks of ``L = CHUNK_ROWS`` rows (``_chunk_operator``), one pass over the readings in
+    blocks (``_chunk_forward``): per block, each chunk's contribution to the state entering
+    the next one (one matrix product of the readings), the states entering the block's
+    chunks (``_carries``), and the estimates (one matrix product of the readings and that
+    state); the last 1 to ``L`` rows go row by row, which gives the final state. A
+    sequential scan of the rows does far less arithmetic but costs XLA's loop overhead per
+    row; the matrix products run at 100-200 GFLOP/s here. The converged rows go in blocks of
+    ``_block_rows`` rows, so a block's readings stay in cache and estimates are written into
+    the outputs in place.
 
     ``series`` has a leading trial axis ``B``; ``z0`` is ``(B, P, Nz)`` and ``hold0``
     ``(B, G)``. ``done = (angles, biases)`` (``(B, F, K)`` each) are the estimates of the
