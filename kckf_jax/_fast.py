@@ -254,7 +254,7 @@ def _chunk_operator(A, Wg, Wh, Tout, L: int):
 
     pw = [jnp.broadcast_to(jnp.eye(nz, dtype=dtype), (P, nz, nz))]
     for _ in range(L):  # A^0 .. A^L, per block (broadcast products: 5 x 5 dots are slow)
-        pw.append(sum(A[:, :, b, None] * pw[-1][:, b, None, :] for b in range(nz)))
+        pw.append(_apply(A, pw[-1]))
     pw = jnp.stack(pw)
     Hh = mv(pw, Wh[None])  # A^d Wh, d = 0 .. L
     Hg = mv(pw, Wg[None])  # A^d Wg
@@ -378,12 +378,18 @@ def _chunk_blocks(plan, body, carry, reverse: bool = False):
     return carry
 
 
+def _readings(coeffs, gyro, hall_v, used, start, n):
+    """Rows ``start .. start + n`` of the raw readings as the steady map reads them: the used
+    gyro columns, then the Hall angles (``B x n x I``)."""
+    g = jax.lax.dynamic_slice_in_dim(gyro, start, n, axis=1)[..., list(used)]
+    h = jax.lax.dynamic_slice_in_dim(hall_v, start, n, axis=1)
+    return jnp.concatenate([g, hall_angle(h, *coeffs)], axis=2)
+
+
 def _chunk_readings(plan, coeffs, gyro, hall_v, start, m):
     """Rows ``F + start .. F + start + m`` of the readings, as chunks: ``(B, m / L, L I)``."""
     F, _, L, _, used, _ = plan
-    g = jax.lax.dynamic_slice_in_dim(gyro, F + start, m, axis=1)[..., list(used)]
-    h = jax.lax.dynamic_slice_in_dim(hall_v, F + start, m, axis=1)
-    x = jnp.concatenate([g, hall_angle(h, *coeffs)], axis=2)
+    x = _readings(coeffs, gyro, hall_v, used, F + start, m)
     return x.reshape(x.shape[0], m // L, -1)
 
 
@@ -477,10 +483,8 @@ def _chunk_rows_bwd(plan, res, ct):
     def block(carry, start, m):
         dx, dGS, dE, dPhi, dcoeffs, a = carry
         c0, c = start // L, m // L
-        g = jax.lax.dynamic_slice_in_dim(gyro, F + start, m, axis=1)[..., list(used)]
-        ang, hall_vjp = jax.vjp(lambda cf: hall_angle(
-            jax.lax.dynamic_slice_in_dim(hall_v, F + start, m, axis=1), *cf), coeffs)
-        x = jnp.concatenate([g, ang], axis=2).reshape(Bt, c, -1)
+        x, readings_vjp = jax.vjp(
+            lambda cf: _chunk_readings(plan, cf, gyro, hall_v, start, m), coeffs)
         s_k = jax.lax.dynamic_slice_in_dim(ss, c0, c, axis=1)
         if live:
             dy = jnp.concatenate([jax.lax.dynamic_slice_in_dim(douts[k], F + start, m, axis=1)
@@ -496,11 +500,11 @@ def _chunk_rows_bwd(plan, res, ct):
                                          jnp.einsum("Bcq,Bco->qo", s_k, dy)])
         dE = dE + jnp.einsum("Bci,Bcq->iq", x, de)
         dPhi = dPhi + jnp.einsum("Bcq,Bcr->qr", s_k, de)
-        dx_k = dx_k.reshape(Bt, m, n_in)
         if want_coeffs:
-            dcoeffs = jax.tree_util.tree_map(jnp.add, dcoeffs, hall_vjp(dx_k[..., Gu:])[0])
+            dcoeffs = jax.tree_util.tree_map(jnp.add, dcoeffs, readings_vjp(dx_k)[0])
         if want_x:
-            dx = jax.lax.dynamic_update_slice_in_dim(dx, dx_k, start, axis=1)
+            dx = jax.lax.dynamic_update_slice_in_dim(dx, dx_k.reshape(Bt, m, n_in), start,
+                                                     axis=1)
         return dx, dGS, dE, dPhi, dcoeffs, a
 
     dx0 = jnp.zeros((Bt, rows, n_in), dtype) if want_x else None
@@ -564,9 +568,7 @@ def _steady_mean(params: Params, st, series: SensorSeries, z0, hold0, maps, head
         return (jnp.einsum("...pij,pjg->...gpi", B, Jr), jnp.einsum("...pij,pjm->...mpi", C, Jh))
 
     def readings(start, n):  # rows start .. start + n: (B, n, I), used gyro columns first
-        gyro = jax.lax.dynamic_slice_in_dim(series.gyro, start, n, axis=1)[..., used]
-        hall = jax.lax.dynamic_slice_in_dim(series.hall_v, start, n, axis=1)
-        return jnp.concatenate([gyro, hall_angle(hall, *params.hall_coeffs)], axis=2)
+        return _readings(params.hall_coeffs, series.gyro, series.hall_v, used, start, n)
 
     def write(outs, y, start):  # y (B, n, 2K): angles then biases
         return tuple(jax.lax.dynamic_update_slice_in_dim(o, y[..., k * K:(k + 1) * K], start,
@@ -752,13 +754,7 @@ def steady_filter(params: Params, series: SensorSeries, method: str = "kckf",
     Recordings of at most ``STEADY_STEPS`` rows take the sequential filter. Falls back to the
     sequential filter for every row (``lax.cond``, same compiled function) when the covariance
     is still moving at that point. Requires what ``steady_conditions`` checks."""
-    if state is None:
-        state = init_state(params, method)
-    if series.dt.shape[0] <= STEADY_STEPS:
-        return scan_filter(params, series, method, state)
-    # The tail runs inside the branch: a branch that only passed on arrays computed before
-    # the cond would copy every estimate (a third of the path's time for long recordings).
-    return _steady_filter(params, series, method, state)[:2]
+    return steady_filter_checked(params, series, method, state)[:2]
 
 
 def steady_filter_checked(params: Params, series: SensorSeries, method: str = "kckf",
@@ -775,6 +771,8 @@ def steady_filter_checked(params: Params, series: SensorSeries, method: str = "k
 
 def _steady_filter(params, series, method, state):
     series, mid, est_head, maps, change = _steady_head(params, series, method, state)
+    # The tail runs inside the branch: a branch that only passed on arrays computed before
+    # the cond would copy every estimate (a third of the path's time for long recordings).
 
     def steady():
         final, est = _steady_tail(params, series, method, mid, est_head, maps)
