@@ -275,6 +275,9 @@ def xla_floor(robot: Robot, shape: tuple[int, ...], dtype, repeats: int = 5) -> 
     g = jnp.asarray(rng.normal(size=shape + (G,)), dtype)
     h = jnp.asarray(rng.uniform(1.0, 2.0, size=shape + (M,)), dtype)
     W = jnp.asarray(rng.normal(size=(G + M, 3 * K)) * 0.01, dtype)
+    # Eq. 1 with scalar coefficients and no sign, not the library's ``hall_angle`` (per-sensor
+    # coefficients and signs): the cheaper form keeps this a lower bound (measured: the
+    # library's form makes this function 5-23 % slower).
     a, b, c, d = (jnp.asarray(v, dtype) for v in (1e-3, 2.87, 3.9e3, 8.43))
 
     @jax.jit
@@ -566,15 +569,14 @@ def main():
         lim["vmapped_auto_fraction_of_steady_limit"] = (
             res["cases"]["vmapped_trials"]["kckf-jax auto"]["float32"]["trial_steps_per_s"]
             / lim["steady_step_limit_steps_per_s"])
-        floor = FLOOR
-        lim["xla_floor_steps_per_s"] = long[floor]["float32"]["steps_per_s"]
+        lim["xla_floor_steps_per_s"] = long[FLOOR]["float32"]["steps_per_s"]
         lim["xla_floor_fraction_of_steady_limit"] = (
             lim["xla_floor_steps_per_s"] / lim["steady_step_limit_steps_per_s"])
         lim["auto_fraction_of_xla_floor"] = (
             long["kckf-jax auto"]["float32"]["steps_per_s"] / lim["xla_floor_steps_per_s"])
         lim["vmapped_auto_fraction_of_xla_floor"] = (
             res["cases"]["vmapped_trials"]["kckf-jax auto"]["float32"]["trial_steps_per_s"]
-            / res["cases"]["vmapped_trials"][floor]["float32"]["trial_steps_per_s"])
+            / res["cases"]["vmapped_trials"][FLOOR]["float32"]["trial_steps_per_s"])
         lim["sequential_fraction_of_full_limit"] = (
             long["kckf-jax sequential"]["float32"]["steps_per_s"]
             / lim["full_step_limit_steps_per_s"])
