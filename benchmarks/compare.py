@@ -39,7 +39,7 @@ import jax
 _WORKER = sys.argv[sys.argv.index("--worker") + 1] if "--worker" in sys.argv else None
 jax.config.update("jax_enable_x64", _WORKER == "float64")
 if _WORKER == "float32":  # streaming is measured here: settings before the first computation
-    from kckf_jax._stream import low_latency
+    from kckf_jax import low_latency
 
     low_latency()
 
@@ -50,12 +50,25 @@ import numpy as np  # noqa: E402
 sys.path.insert(0, os.path.dirname(__file__))
 from _machine import machine  # noqa: E402
 
-from kckf_jax import Params, Robot, filter_batch, paper_matrices, run_filter, simulate  # noqa: E402
-from kckf_jax._fast import HEAD_ROWS, STEADY_STEPS  # noqa: E402
-from kckf_jax._filter import SensorSeries, hall_measurements  # noqa: E402
-from kckf_jax._fit import Batch, loss_fn  # noqa: E402
-from kckf_jax._model import structure  # noqa: E402
-from kckf_jax._stream import HOST_CHECK_EVERY, PacketParser, StreamingFilter  # noqa: E402
+from kckf_jax import (  # noqa: E402
+    PacketParser,
+    Params,
+    Robot,
+    SensorSeries,
+    Sequential,
+    Steady,
+    StreamingFilter,
+    filter_batch,
+    full_state,
+    hall_angle,
+    init_state,
+    loss_fn,
+    make_batch,
+    paper_matrices,
+    run_filter,
+    simulate,
+    structure,
+)
 
 ROBOTS = {"bench": "x,y,x,y", "3d": "xyz,xyz,xyz,xyz"}
 DT = 0.01
@@ -89,17 +102,14 @@ def peer_model(params: Params):
     K = robot.n_angles
     x0 = np.zeros(2 * K)
     # The KCKF's prior satisfies the constraint: P0 = T diag(p0) T^T in the paper's order.
-    from kckf_jax._model import full_state, initial_covariance
-
-    P0b = np.asarray(initial_covariance(st, params.astype(jnp.float64)))
+    P0b = np.asarray(init_state(params.astype(jnp.float64)).P)
     _, P0 = full_state(st, np.zeros(P0b.shape[:2]), P0b)
     return dict(F=pm.A, B=pm.B, Q=pm.Q, H=H, R=R, x0=x0, P0=P0)
 
 
 def peer_emissions(params, s):
     """Hall angles through Eq. 1 (rad) plus the constraint's zeros, (T, M + P)."""
-    ang, _, _ = jax.vmap(lambda v: hall_measurements(params.astype(jnp.float64), v))(
-        jnp.asarray(s.hall_v))
+    ang = hall_angle(jnp.asarray(s.hall_v), *params.astype(jnp.float64).hall_coeffs)
     return np.concatenate([np.asarray(ang), np.zeros((s.n_steps, params.robot.n_torso_axes))], 1)
 
 
@@ -405,15 +415,12 @@ def run_robot(name: str, spec: str, args, tmp: str, dtype) -> dict:
     if dn == "float32":
         # ---- gradient of the fitting loss
         grad = {}
-        truth = np.stack([t.truth() for t in trials])
-        mask = np.isfinite(truth)
-        tj, mj = jnp.asarray(np.where(mask, truth, 0.0), dtype), jnp.asarray(mask)
-        for regular in (True, False):
-            b = Batch(batch_ser, tj, mj, regular=regular)
-            g = eqx.filter_jit(eqx.filter_value_and_grad(lambda q, b: loss_fn(q, b, "kckf",
-                                                                               100)))
+        b = make_batch(trials, dtype)
+        for path in (Steady(), Sequential(100)):
+            g = eqx.filter_jit(eqx.filter_value_and_grad(
+                lambda q, b, path=path: loss_fn(q, b, "kckf", path=path)))
             (lv, _), t, first = timed(lambda g=g, b=b: g(params, b), repeats=2)
-            grad["kckf-jax " + ("steady" if regular else "sequential")] = {
+            grad["kckf-jax " + path.name] = {
                 "seconds_per_gradient": t, "compile_s": first - t,
                 "loss_deg": float(lv) * 180 / np.pi}
         if args.dynamax_grad:
@@ -425,8 +432,8 @@ def run_robot(name: str, spec: str, args, tmp: str, dtype) -> dict:
                                jnp.exp(logs[1])))
                 d = dynamax_params(mdl, dtype)
                 xs = jax.vmap(lambda y, u: lgssm_filter(d, y, u).filtered_means)(ys, us)
-                e = jnp.where(mj, xs[..., : robot.n_angles] - tj, 0.0)
-                return jnp.mean(jnp.sqrt(jnp.sum(e**2, (0, 1)) / jnp.sum(mj, (0, 1))))
+                e = jnp.where(b.mask, xs[..., : robot.n_angles] - b.truth, 0.0)
+                return jnp.mean(jnp.sqrt(jnp.sum(e**2, (0, 1)) / jnp.sum(b.mask, (0, 1))))
 
             gd = jax.jit(jax.value_and_grad(dyn_loss))
             (lv, _), t, first = timed(lambda: gd(jnp.zeros(2, dtype)), repeats=1)
@@ -436,9 +443,9 @@ def run_robot(name: str, spec: str, args, tmp: str, dtype) -> dict:
         cases["gradient"] = grad
 
         # ---- streaming latency (low_latency() ran at import, before any computation)
-        # A live stream at a constant rate: the first HEAD_ROWS + 2 checks' packets (20 s
+        # A live stream at a constant rate: the first host_after packets (20 s
         # at 100 Hz) go untimed, while the covariance converges; the next ones are timed.
-        warm = HEAD_ROWS[np.dtype(dtype)] + 2 * HOST_CHECK_EVERY
+        warm = StreamingFilter(params).host_after
         n_lat = min(5000, L - warm)
         parser = PacketParser(robot)
         pk = []
@@ -526,7 +533,8 @@ def main():
     ap.add_argument("--tmp", help=argparse.SUPPRESS)
     args = ap.parse_args()
     args.long_steps = 20_000 if args.quick else 360_000
-    args.trials, args.trial_steps = (8, STEADY_STEPS + 1000) if args.quick else (64, 10_000)
+    args.trials, args.trial_steps = ((8, Steady().min_rows + 1000) if args.quick
+                                     else (64, 10_000))
     args.loop_steps = 2_000 if args.quick else 20_000
     if args.worker:
         dtype = jnp.float32 if args.worker == "float32" else jnp.float64

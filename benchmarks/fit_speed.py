@@ -4,9 +4,10 @@
 
 Part 1: one training step (loss, gradient, Adam update) for ``--trials`` simulated bench trials
 (x, y, x, y) of ``--steps`` steps each, float32, the scan checkpointed in chunks of about
-sqrt(T) (``_fit.auto_chunk``). Reports compile time, the median step time over 5 steps, XLA's
-temporary buffer size for the step (with and without chunked checkpointing) and the process's
-peak resident memory.
+sqrt(T) (``fit``'s default), timed through ``kckf_jax.fit`` itself (6 steps; the first
+compiles). Reports compile time, the median step time over the other 5, XLA's temporary buffer
+size for the loss and gradient (with and without chunked checkpointing) and the process's peak
+resident memory.
 
 Part 2: the fit ``kckf demo`` runs (80 Adam steps on the shipped training sessions): wall time
 and the step after which the training loss stays within 2 % of its final value.
@@ -30,16 +31,17 @@ import numpy as np
 sys.path.insert(0, os.path.dirname(__file__))
 from _machine import machine  # noqa: E402
 
-from kckf_jax import read_session, simulate  # noqa: E402
-from kckf_jax._fit import (  # noqa: E402
+from kckf_jax import (  # noqa: E402
+    Auto,
     FitConfig,
-    _train_step,
-    auto_chunk,
+    Sequential,
+    choose_path,
     fit,
     initial_params,
     loss_fn,
     make_batch,
-    optimizer,
+    read_session,
+    simulate,
 )
 
 ROOT = os.path.join(os.path.dirname(__file__), "..")
@@ -49,29 +51,25 @@ def gradient_step(trials: int, steps: int) -> dict:
     sessions = [simulate("x,y,x,y", "cyclic", seed=i, duration_s=steps / 100.0, device_seed=1,
                          drop_prob=0.01) for i in range(trials)]
     batch = make_batch(sessions, jnp.float32)
-    del sessions
-    cfg = FitConfig()
-    params = initial_params([simulate("x,y,x,y", duration_s=1.0)], cfg, jnp.float32)
+    cfg = FitConfig(steps=6)
+    params = initial_params(sessions, cfg, jnp.float32)
     diff, static = eqx.partition(params, eqx.is_array)
-    opt = optimizer(cfg.learning_rate, cfg.clip_norm)
-    state = opt.init(diff)
-    chunk = auto_chunk(steps, trials)
+    chunk = int(np.ceil(np.sqrt(steps)))  # fit's default above 50,000 trial-steps
     mem = {}
     for name, c in (("chunked", chunk), ("plain", None)):
-        f = jax.jit(lambda d, b, c=c: eqx.filter_value_and_grad(
-            lambda d: loss_fn(eqx.combine(d, static), b, "kckf", c))(d))
+        path = choose_path(params, batch.series, "kckf", Auto(sequential=Sequential(c))).path
+        f = jax.jit(lambda d, b, path=path: eqx.filter_value_and_grad(
+            lambda d: loss_fn(eqx.combine(d, static), b, "kckf", path=path))(d))
         mem[name] = f.lower(diff, batch).compile().memory_analysis().temp_size_in_bytes
+    del batch
+    stamps = []
     t0 = time.perf_counter()
-    out = _train_step(diff, static, state, batch, None, opt, "kckf", chunk)
-    jax.block_until_ready(out)
-    compile_s = time.perf_counter() - t0
-    times = []
-    for _ in range(5):
-        t0 = time.perf_counter()
-        out = _train_step(out[0], static, out[1], batch, None, opt, "kckf", chunk)
-        jax.block_until_ready(out)
-        times.append(time.perf_counter() - t0)
+    fit(sessions, (), cfg, dtype=jnp.float32,
+        callback=lambda r: stamps.append(time.perf_counter()))
+    compile_s = stamps[0] - t0
+    times = np.diff(stamps).tolist()
     return {"trials": trials, "steps": steps, "dtype": "float32", "remat_chunk": chunk,
+            "path": path.name,
             "compile_and_first_s": round(compile_s, 2),
             "step_s_median": round(float(np.median(times)), 3),
             "step_s_all": [round(t, 3) for t in times],

@@ -34,13 +34,13 @@ import numpy as np
 sys.path.insert(0, os.path.dirname(__file__))
 from _machine import machine  # noqa: E402
 
-from kckf_jax import Params, simulate, write_session  # noqa: E402
-from kckf_jax._fast import HEAD_ROWS  # noqa: E402
-from kckf_jax._stream import (  # noqa: E402
-    HOST_CHECK_EVERY,
+from kckf_jax import (  # noqa: E402
     PacketParser,
+    Params,
     StreamingFilter,
     low_latency,
+    simulate,
+    write_session,
 )
 
 ROOT = os.path.join(os.path.dirname(__file__), "..")
@@ -91,14 +91,14 @@ def in_process(s, pk, export_path) -> dict:
         t0 = time.perf_counter()
         ex.push_array(float(s.t[i]), x[i])
         ex_us.append((time.perf_counter() - t0) * 1e6)
-    # A regular stream (a device clock's constant step, every reading): after HEAD_ROWS
+    # A regular stream (a device clock's constant step, every reading): after host_after
     # packets the covariance has converged and packets take the host path.
     reg = simulate(s.robot, "cyclic", seed=4, duration_s=80.0, drop_prob=0.0)
     reg.t = np.arange(reg.n_steps) * 0.01
     sf = StreamingFilter(Params.paper_defaults(reg.robot, reg.hall_models))
     sf.warmup()
     parsed = [parser.parse(p) for p in packets(reg)]
-    warm = HEAD_ROWS[np.dtype(sf.dtype)] + 2 * HOST_CHECK_EVERY
+    warm = sf.host_after
     for p in parsed[:warm]:
         sf.push(p)
     host_us, on_host = [], 0

@@ -1,35 +1,51 @@
 """kckf-jax: the Kinematically Constrained Kalman Filter for wearable serial-link robots.
 
-The public API (everything else lives in private modules):
+The public API (everything else lives in private modules; docs/architecture.md maps them):
 
-* layout and parameters: ``Robot``, ``Params`` (learnable), ``load_params``, ``save_params``;
-* filters: ``step``, ``init_state``, ``run_filter`` (jitted ``lax.scan``), ``filter_batch``
-  (``vmap``), ``METHODS``;
-* sessions: ``read_session``, ``write_session``, ``Session``, ``simulate``;
-* evaluation and fitting: ``filter_sessions``, ``rmse_table``, ``fit``, ``FitConfig``;
-* analysis: ``observability_ranks``, ``paper_matrices``.
+* layout and parameters: ``Robot``, ``Params`` (learnable), ``ParamsFileError``,
+  ``load_params``, ``save_params``, ``params_to_dict``;
+* the filter's kernel: ``SensorSeries``, ``FilterState``, ``Estimate``, ``METHODS``,
+  ``init_state``, ``step``, ``scan_filter``, ``pad_series``, ``full_state``, ``structure``,
+  ``paper_matrices``;
+* running it: ``run_filter`` (one recording), ``filter_batch`` (padded trials),
+  ``filter_sessions`` (recorded sessions), ``session_series``, ``session_params``,
+  ``choose_path`` and ``PathChoice`` (which path runs, and why);
+* the paths (how the same estimates are computed): ``AbstractPath``, ``Sequential``,
+  ``Steady``, ``Parallel``, ``Auto``;
+* the Hall model (Eq. 1; coefficients in rad): ``hall_angle``, ``hall_slope``,
+  ``hall_voltage``;
+* sessions: ``Session``, ``SessionError``, ``read_session``, ``write_session``,
+  ``align_mocap``, ``simulate``, ``SimConfig``, ``KINDS``, ``sample_data_dir`` (the sample
+  sessions shipped with the package);
+* evaluation and fitting: ``rmse_table``, ``fused_hall_error``, ``fit``, ``FitConfig``,
+  ``FitResult``, ``FitInterrupted``, ``initial_params``, ``loss_fn``, ``make_batch``,
+  ``shard_batch``;
+* live filtering and deployment: ``StreamingFilter``, ``PacketParser``, ``Packet``,
+  ``STATUSES``, ``low_latency``, ``export_step``;
+* analysis: ``observability_ranks``.
+
+The other papers' systems are in ``kckf_jax.filters``.
 """
 
-from ._filter import METHODS as METHODS
-from ._filter import Estimate as Estimate
-from ._filter import FilterState as FilterState
-from ._filter import SensorSeries as SensorSeries
-from ._filter import filter_batch as filter_batch
-from ._filter import init_state as init_state
-from ._filter import pad_series as pad_series
-from ._filter import run_filter as run_filter
-from ._filter import scan_filter as scan_filter
-from ._filter import step as step
+from ._demo import sample_data_dir as sample_data_dir
+from ._export import export_step as export_step
 from ._fit import FitConfig as FitConfig
-from ._fit import FitInterrupted as FitInterrupted
-from ._fit import FitResult as FitResult
 from ._fit import fit as fit
+from ._fit import initial_params as initial_params
 from ._fit import loss_fn as loss_fn
 from ._fit import make_batch as make_batch
 from ._fit import shard_batch as shard_batch
 from ._hall import hall_angle as hall_angle
 from ._hall import hall_slope as hall_slope
 from ._hall import hall_voltage as hall_voltage
+from ._kernel import METHODS as METHODS
+from ._kernel import Estimate as Estimate
+from ._kernel import FilterState as FilterState
+from ._kernel import SensorSeries as SensorSeries
+from ._kernel import init_state as init_state
+from ._kernel import pad_series as pad_series
+from ._kernel import scan_filter as scan_filter
+from ._kernel import step as step
 from ._metrics import fused_hall_error as fused_hall_error
 from ._metrics import rmse_table as rmse_table
 from ._model import full_state as full_state
@@ -41,8 +57,17 @@ from ._params import ParamsFileError as ParamsFileError
 from ._params import load_params as load_params
 from ._params import params_to_dict as params_to_dict
 from ._params import save_params as save_params
+from ._paths import AbstractPath as AbstractPath
+from ._paths import Auto as Auto
+from ._paths import Parallel as Parallel
+from ._paths import PathChoice as PathChoice
+from ._paths import Sequential as Sequential
+from ._paths import Steady as Steady
 from ._robot import Robot as Robot
+from ._run import choose_path as choose_path
+from ._run import filter_batch as filter_batch
 from ._run import filter_sessions as filter_sessions
+from ._run import run_filter as run_filter
 from ._run import session_params as session_params
 from ._run import session_series as session_series
 from ._session import Session as Session
@@ -53,5 +78,12 @@ from ._session import write_session as write_session
 from ._simulate import KINDS as KINDS
 from ._simulate import SimConfig as SimConfig
 from ._simulate import simulate as simulate
+from ._stream import STATUSES as STATUSES
+from ._stream import Packet as Packet
+from ._stream import PacketParser as PacketParser
+from ._stream import StreamingFilter as StreamingFilter
+from ._stream import low_latency as low_latency
+from ._train import FitInterrupted as FitInterrupted
+from ._train import FitResult as FitResult
 
 __version__ = "0.1.0"

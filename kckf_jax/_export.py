@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._filter import init_state
+from ._kernel import estimated, init_state
 from ._params import _LEAVES, Params
 from ._stream import stream_step_fn
 
@@ -54,13 +54,12 @@ def export_step(params: Params, path: str, method: str = "kckf", baked: bool = T
 
         spec_p = jax.ShapeDtypeStruct(leaves.shape, dtype)
         exported = jax.export.export(jax.jit(with_params))(spec_p, spec_s, spec_x)
-    estimated = [not (method in ("hall_l", "hall_r") and k >= robot.n_joint_axes)
-                 for k in range(robot.n_angles)]
     header = {
         "format": "kckf-export/1", "method": method, "joints": robot.to_meta(),
         "dtype": np.dtype(dtype).name, "gyro_names": list(robot.gyro_names),
         "hall_names": list(robot.hall_names), "angle_names": list(robot.angle_names),
-        "estimated": estimated, "initial_state": s0.tolist(), "x_size": x_size,
+        "estimated": estimated(robot, method).tolist(), "initial_state": s0.tolist(),
+        "x_size": x_size,
         "params_mode": "baked" if baked else "passed",
         "params": None if baked else leaves.tolist(),
         "param_leaves": [[n, k] for n, k in zip(_LEAVES, sizes)],

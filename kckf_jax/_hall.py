@@ -23,6 +23,17 @@ PAPER_HALL_DEG = {"a": 0.07, "b": 2.87, "c": 2.22e5, "d": 8.43}
 DEG = math.pi / 180.0
 
 
+def hall_exponentials(a, b, c, d, sign):
+    """Eq. (1) as two weighted exponentials, ``theta = w1 e^(k1 V) + w2 e^(k2 V)``: returns
+    ``((w1, w2), (k1, k2)) = ((sign a, -sign c), (b, -d))``, weights in rad, exponents in 1/V.
+
+    The one place Eq. (1) is written: ``hall_angle``, ``hall_slope``, ``hall_voltage`` and the
+    streaming filter's host path (which folds the weights into its matrix) all use it. Works
+    on NumPy and JAX arrays alike.
+    """
+    return (sign * a, -sign * c), (b, -d)
+
+
 def hall_angle(
     v: Float[ArrayLike, "*#M"],
     a: Float[ArrayLike, "*#M"],
@@ -31,9 +42,15 @@ def hall_angle(
     d: Float[ArrayLike, "*#M"],
     sign: Real[ArrayLike, "*#M"],
 ) -> Float[Array, "*M"]:
-    """Joint angle (rad) from Hall voltage ``v`` (V), Eq. (1); coefficients in rad."""
+    """Joint angle (rad) from Hall voltage ``v`` (V), Eq. (1).
+
+    Coefficients in **rad** (``a``, ``c``; ``b``, ``d`` in 1/V; ``sign`` +-1): a model
+    written in degrees, as ``meta.json`` usually gives it, must be converted first
+    (``Params.from_physical`` does it from the ``unit`` field).
+    """
+    (w1, w2), (k1, k2) = hall_exponentials(a, b, c, d, sign)
     v = jnp.asarray(v)
-    return sign * (a * jnp.exp(b * v) - c * jnp.exp(-d * v))
+    return w1 * jnp.exp(k1 * v) + w2 * jnp.exp(k2 * v)
 
 
 def hall_slope(
@@ -44,39 +61,47 @@ def hall_slope(
     d: Float[ArrayLike, "*#M"],
     sign: Real[ArrayLike, "*#M"],
 ) -> Float[Array, "*M"]:
-    """``d theta / d V`` (rad/V) of Eq. (1)."""
+    """``d theta / d V`` (rad/V) of Eq. (1) at ``v`` (V); coefficients in rad as for
+    ``hall_angle``."""
+    (w1, w2), (k1, k2) = hall_exponentials(a, b, c, d, sign)
     v = jnp.asarray(v)
-    return sign * (a * b * jnp.exp(b * v) + c * d * jnp.exp(-d * v))
+    return w1 * k1 * jnp.exp(k1 * v) + w2 * k2 * jnp.exp(k2 * v)
 
 
 def hall_voltage(
     angle_rad: np.ndarray, a, b, c, d, sign, v_lo: float = -2.0, v_hi: float = 6.0
 ) -> np.ndarray:
-    """The voltage a sensor of model (a, b, c, d, sign) gives at ``angle_rad``; inverse of Eq. 1.
+    """The voltage (V) a sensor of model ``(a, b, c, d, sign)`` gives at ``angle_rad`` (rad):
+    the inverse of Eq. 1. Coefficients in **rad** as for ``hall_angle`` (with the degree values
+    of a ``meta.json`` the curve is 57 times too flat).
 
     NumPy float64, vectorised; safeguarded Newton iterations inside the bracket
-    ``[v_lo, v_hi]`` (the model is monotone, so the root is unique). Used by the simulator.
+    ``[v_lo, v_hi]`` (V; the model is monotone, so the root is unique). Used by the simulator.
     """
-    target = np.asarray(angle_rad, dtype=np.float64) * np.asarray(sign, dtype=np.float64)
-    a, b, c, d = (np.broadcast_to(np.asarray(x, dtype=np.float64), target.shape)
-                  for x in (a, b, c, d))
+    target = np.asarray(angle_rad, dtype=np.float64)
+    a, b, c, d, sign = (np.broadcast_to(np.asarray(x, dtype=np.float64), target.shape)
+                        for x in (a, b, c, d, sign))
+    (w1, w2), (k1, k2) = hall_exponentials(a, b, c, d, sign)
     lo = np.full(target.shape, v_lo)
     hi = np.full(target.shape, v_hi)
 
-    def f(v):
-        return a * np.exp(b * v) - c * np.exp(-d * v) - target
+    def f(v):  # increasing in v whatever the sign
+        return sign * (w1 * np.exp(k1 * v) + w2 * np.exp(k2 * v) - target)
+
+    def slope(v):
+        return sign * (w1 * k1 * np.exp(k1 * v) + w2 * k2 * np.exp(k2 * v))
 
     # Start from whichever exponential dominates at the target.
+    signed = target * sign
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        v = np.where(target > 0, np.log(np.maximum(target, 1e-300) / a) / b,
-                     -np.log(np.maximum(-target, 1e-300) / c) / d)
+        v = np.where(signed > 0, np.log(np.maximum(signed, 1e-300) / a) / b,
+                     -np.log(np.maximum(-signed, 1e-300) / c) / d)
     v = np.clip(np.nan_to_num(v, nan=0.5 * (v_lo + v_hi)), v_lo, v_hi)
     for _ in range(100):
         fv = f(v)
         lo = np.where(fv < 0, v, lo)
         hi = np.where(fv >= 0, v, hi)
-        step = fv / (a * b * np.exp(b * v) + c * d * np.exp(-d * v))
-        v_new = v - step
+        v_new = v - fv / slope(v)
         outside = (v_new <= lo) | (v_new >= hi)
         v_new = np.where(outside, 0.5 * (lo + hi), v_new)
         if np.all(np.abs(v_new - v) < 1e-13):

@@ -69,7 +69,7 @@ def fused_hall_error(params, reference, sessions: Sequence[Session]) -> np.ndarr
     and of ``reference`` (e.g. the true curves of a simulation), over the sessions' readings.
 
     The filter uses each joint's two Hall readings only through their inverse-variance
-    weighted mean (``_filter.fused_pairs``), so this is the part of a Hall calibration that
+    weighted mean (``_kernel.fused_pairs``), so this is the part of a Hall calibration that
     matters to it and that fitting can identify: a change of ``a`` against ``b`` (or ``c``
     against ``d``) over the voltages a sensor visits, or an error of one side compensated by
     the other, leaves it unchanged. Both use ``params``' weights.
@@ -77,7 +77,7 @@ def fused_hall_error(params, reference, sessions: Sequence[Session]) -> np.ndarr
     import jax
     import jax.numpy as jnp
 
-    from ._filter import fused_pairs, hall_measurements
+    from ._kernel import fused_pairs, hall_measurements
 
     def diff(v):
         ang, r, ok = hall_measurements(params, v)

@@ -223,10 +223,15 @@ class Robot:
         return np.argmax(w > 0, axis=1), np.argmax(w < 0, axis=1)
 
     @functools.cached_property
+    def used_gyro_index(self) -> np.ndarray:
+        """The indices (into ``gyro_names``) of the gyro columns the filters read: those with a
+        non-zero in ``rate_map``, in column order."""
+        return np.flatnonzero(np.any(self.rate_map != 0.0, axis=0))
+
+    @functools.cached_property
     def used_gyro_columns(self) -> tuple[str, ...]:
-        """The gyro columns the filters read (those with a non-zero in ``rate_map``)."""
-        used = np.any(self.rate_map != 0.0, axis=0)
-        return tuple(n for n, u in zip(self.gyro_names, used) if u)
+        """The names of the gyro columns the filters read (``used_gyro_index``)."""
+        return tuple(self.gyro_names[i] for i in self.used_gyro_index)
 
     def __repr__(self) -> str:
         return f"Robot.from_spec({self.spec!r})"

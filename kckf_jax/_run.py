@@ -1,12 +1,14 @@
-"""Filters applied to recorded sessions: ``Session`` -> ``SensorSeries`` -> ``Estimate``.
+"""Running the filter: the one place that resolves a path and compiles the call.
 
-Sessions of one robot are padded to a common length and filtered in one ``vmap`` (with one
-parameter set, or one per session, e.g. each session's own Hall calibration from its
-``meta.json``), so a command compiles each method once, whatever the number of sessions.
+``run_filter`` (one recording), ``filter_batch`` (padded trials) and ``filter_sessions``
+(recorded sessions: what every command calls) each pick the path on concrete inputs
+(``choose_path``: ``Auto`` by default), then run it in one jitted call. The estimates say which
+path ran (``Estimate.path``).
 """
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 
 import equinox as eqx
@@ -14,11 +16,106 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._filter import Estimate, SensorSeries, pad_series, run_filter
+from ._kernel import Estimate, FilterState, SensorSeries, check_method, init_state, pad_series
 from ._params import Params
+from ._paths import AbstractPath, Auto, PathChoice, as_path
 from ._session import Session
 
 
+def choose_path(params: Params, series: SensorSeries, method: str = "kckf",
+                path: str | AbstractPath = "auto", state: FilterState | None = None
+                ) -> PathChoice:
+    """The path that computes ``method`` on ``series`` (one recording or a batch): ``Auto``'s
+    pick, or ``path`` itself once it is checked to apply (a ``ValueError`` says why not).
+
+    Example:
+        >>> robot = Robot.from_spec("x,y")
+        >>> series = SensorSeries(jnp.full(5, 0.01), jnp.zeros((5, 9)), jnp.ones((5, 4)))
+        >>> choice = choose_path(Params.paper_defaults(robot), series)
+        >>> choice.path.name, choice.passed_over["steady"]
+        ('sequential', '5 rows, not more than 4096')
+    """
+    check_method(method)
+    p = as_path(path)
+    if isinstance(p, Auto):
+        return p.select(params, series, method, state)
+    why = p.applies(params, series, method, state=state)
+    if why is not None:
+        raise ValueError(f"path={p.name!r} does not apply: {why}; use path='auto' (the "
+                         "fastest that applies) or 'sequential'")
+    return PathChoice(p, {})
+
+
+def run_filter(
+    params: Params, series: SensorSeries, method: str = "kckf", state: FilterState | None = None,
+    path: str | AbstractPath = "auto",
+) -> tuple[FilterState, Estimate]:
+    """Filter a whole recording: ``lax.scan`` of ``step`` over the rows of ``series``, jitted.
+
+    Args:
+        params: the filter parameters (their dtype sets the computation's precision).
+        series: one trial, ``dt`` of shape (T,). Use ``filter_batch`` for a batch of padded
+            trials.
+        method: one of ``METHODS``.
+        state: the starting state (default ``init_state(params, method)``).
+        path: how to compute it (all give the same estimates; ``docs/performance.md``): a
+            path object (``Sequential()``, ``Steady(...)``, ``Parallel()``, ``Auto()``) or its
+            name. ``"auto"`` (default) takes the fastest that applies (``choose_path``).
+
+    Returns:
+        The final state and an ``Estimate`` with a leading time axis; ``Estimate.path`` names
+        the path that ran.
+
+    Example:
+        >>> robot = Robot.from_spec("x,y")
+        >>> params = Params.paper_defaults(robot)
+        >>> series = SensorSeries(jnp.full(5, 0.01), jnp.zeros((5, 9)), jnp.ones((5, 4)))
+        >>> final, est = run_filter(params, series, "kckf")
+        >>> est.angles.shape, est.path
+        ((5, 4), 'sequential')
+    """
+    check_method(method)
+    chosen = choose_path(params, series, method, path, state).path
+    if state is None:
+        state = init_state(params, method)
+    final, est = _run_one(chosen, params, series, method, state)
+    return final, dataclasses.replace(est, path=chosen.name)
+
+
+@eqx.filter_jit
+def _run_one(path: AbstractPath, params, series, method, state):
+    series1, state1 = jax.tree_util.tree_map(lambda x: jnp.asarray(x)[None], (series, state))
+    final, est = path.run(params, series1, method, state1)
+    return jax.tree_util.tree_map(lambda x: x[0], (final, est))
+
+
+def filter_batch(params: Params, series: SensorSeries, method: str = "kckf",
+                 path: str | AbstractPath = "auto") -> Estimate:
+    """``run_filter`` over a batch of trials (leading axis ``B``, padded to one length with
+    ``pad_series``), one parameter set for all; ``Estimate.path`` names the path that ran.
+
+    Example:
+        >>> robot = Robot.from_spec("x")
+        >>> trials = [SensorSeries(jnp.full(n, 0.01), jnp.zeros((n, 6)), jnp.ones((n, 2)))
+        ...           for n in (4, 7)]
+        >>> filter_batch(Params.paper_defaults(robot), pad_series(trials)).angles.shape
+        (2, 7, 2)
+    """
+    check_method(method)
+    chosen = choose_path(params, series, method, path).path
+    est = _run_batch(chosen, params, series, method)
+    return dataclasses.replace(est, path=chosen.name)
+
+
+@eqx.filter_jit
+def _run_batch(path: AbstractPath, params, series, method):
+    n = jnp.shape(series.dt)[0]
+    state = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (n,) + x.shape),
+                                   init_state(params, method))
+    return path.run(params, series, method, state)[1]
+
+
+# ---------------------------------------------------------------------------- sessions
 def session_series(session: Session, dtype=None) -> SensorSeries:
     """The filter inputs of a session; time differenced in float64 before any cast."""
     dtype = dtype or jnp.asarray(0.0).dtype
@@ -56,27 +153,44 @@ def session_params(sessions: Sequence[Session], params: Params | None = None,
     return [Params.paper_defaults(robot, s.hall_models, dtype=dtype) for s in sessions]
 
 
-def stack_params(params: Sequence[Params]) -> Params:
-    """Stack parameter sets leaf by leaf (for ``vmap`` over sessions)."""
-    return jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *params)
-
-
-@eqx.filter_jit
-def _filter_stacked(params: Params, series: SensorSeries, method: str) -> Estimate:
-    return jax.vmap(lambda p, s: run_filter(p, s, method)[1])(params, series)
+def same_params(a: Params, b: Params) -> bool:
+    """Whether two parameter sets are the same filter (same layout and leaf values)."""
+    if a is b:
+        return True
+    la, ta = jax.tree_util.tree_flatten(a)
+    lb, tb = jax.tree_util.tree_flatten(b)
+    return ta == tb and all(np.array_equal(np.asarray(x), np.asarray(y)) for x, y in zip(la, lb))
 
 
 def filter_sessions(
     sessions: Sequence[Session], method: str = "kckf", params: Params | None = None,
-    dtype=None,
+    dtype=None, path: str | AbstractPath = "auto",
 ) -> list[Estimate]:
-    """Run ``method`` over every session (padded, vmapped); one ``Estimate`` per session,
-    cut back to the session's own length, as NumPy arrays."""
+    """Run ``method`` over every session; one ``Estimate`` per session, cut back to the
+    session's own length, as NumPy arrays, its ``path`` naming the path that ran.
+
+    Sessions that share one parameter set (``params``, or the same ``meta.json`` calibration)
+    are padded to one length and filtered as one batch (``filter_batch``: one compiled call,
+    the path chosen on the batch); a single regular session takes the steady path."""
+    check_method(method)
     plist = session_params(sessions, params, dtype)
-    dtype = plist[0].log_q.dtype
-    batch = pad_series([SensorSeries(s.dt(), s.gyro, s.hall_v) for s in sessions])
-    batch = jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype), batch)
-    est = _filter_stacked(stack_params(plist), batch, method)
-    est = jax.tree_util.tree_map(np.asarray, est)
-    return [jax.tree_util.tree_map(lambda x, n=s.n_steps, b=b: x[b, :n], est)
-            for b, s in enumerate(sessions)]
+    groups: list[tuple[Params, list[int]]] = []
+    for i, p in enumerate(plist):
+        for rep, members in groups:
+            if same_params(rep, p):
+                members.append(i)
+                break
+        else:
+            groups.append((p, [i]))
+    out: list[Estimate | None] = [None] * len(sessions)
+    for p, members in groups:
+        dtype_p = p.log_q.dtype
+        batch = pad_series([SensorSeries(sessions[i].dt(), sessions[i].gyro,
+                                         sessions[i].hall_v) for i in members])
+        batch = jax.tree_util.tree_map(lambda x, d=dtype_p: jnp.asarray(x, d), batch)
+        est = filter_batch(p, batch, method, path)
+        arrays = jax.tree_util.tree_map(np.asarray, est)
+        for b, i in enumerate(members):
+            out[i] = jax.tree_util.tree_map(lambda x, n=sessions[i].n_steps, b=b: x[b, :n],
+                                            arrays)
+    return out

@@ -14,10 +14,6 @@ import sys
 import time
 from collections.abc import Sequence
 
-PAPER_TABLE_METHODS = ("gyro", "hall_l", "hall_r", "kf", "kckf")
-TABLE_LABELS = {"gyro": "Gyro", "hall_l": "Hall l", "hall_r": "Hall r", "kf": "Std KF",
-                "kckf": "KCKF", "kckf_fit": "KCKF fit"}
-
 
 class UsageError(ValueError):
     """Bad input from the command line or a file: reported in one line, exit status 2."""
@@ -59,71 +55,12 @@ def _read_sessions(paths: Sequence[str], require_mocap: bool = False):
 
 
 def _check_methods(methods: Sequence[str]) -> list[str]:
-    from ._filter import METHODS
+    from ._kernel import METHODS
 
     for m in methods:
         if m not in METHODS:
             raise UsageError(f"--method {m!r}: expected one of {', '.join(METHODS)}")
     return list(dict.fromkeys(methods))
-
-
-def format_table(results: dict, robot, methods: Sequence[str], title: str = "") -> str:
-    """The paper's Table 1 layout: one row per angle, one column per method, RMSE in deg."""
-    cols = [m for m in methods if m in results]
-    width = 9
-    lines = []
-    if title:
-        lines.append(title)
-    lines.append(f"{'angle':<10}" + "".join(f"{TABLE_LABELS.get(m, m):>{width}}" for m in cols))
-    for name in robot.angle_names:
-        row = f"{name:<10}"
-        for m in cols:
-            v = results[m]["rmse_deg"].get(name)
-            row += f"{'-':>{width}}" if v is None else f"{v:>{width}.2f}"
-        lines.append(row)
-    lines.append(f"{'mean':<10}" + "".join(
-        f"{results[m]['mean_rmse_deg']:>{width}.2f}" for m in cols))
-    return "\n".join(lines)
-
-
-def markdown_table(results: dict, robot, methods: Sequence[str]) -> str:
-    cols = [m for m in methods if m in results]
-    lines = ["| angle | " + " | ".join(TABLE_LABELS.get(m, m) for m in cols) + " |",
-             "| --- |" + " ---: |" * len(cols)]
-    for name in robot.angle_names:
-        cells = []
-        for m in cols:
-            v = results[m]["rmse_deg"].get(name)
-            cells.append("-" if v is None else f"{v:.2f}")
-        lines.append(f"| {name} | " + " | ".join(cells) + " |")
-    lines.append("| mean | " + " | ".join(
-        f"{results[m]['mean_rmse_deg']:.2f}" for m in cols) + " |")
-    return "\n".join(lines)
-
-
-def evaluate_sessions(sessions, methods: Sequence[str], params=None, burn_in_s: float = 0.0):
-    """RMSE of every method on ``sessions``: the ``kckf evaluate --json`` document and the
-    estimated angles ``{method: [(T, K) per session]}``."""
-    from ._metrics import rmse_table
-    from ._run import filter_sessions
-
-    for s in sessions:
-        if not s.has_truth:
-            raise UsageError(
-                f"{s.path}: no motion capture overlaps the sensors (mocap.csv is needed to "
-                "evaluate)"
-            )
-    out, angles = {}, {}
-    for m in methods:
-        est = filter_sessions(sessions, m, params)
-        angles[m] = [e.angles for e in est]
-        out[m] = rmse_table(sessions, angles[m], burn_in_s)
-    return {"methods": out, "sessions": [s.path for s in sessions]}, angles
-
-
-def _session_name(path: str) -> str:
-    parts = os.path.normpath(path).split(os.sep)
-    return "_".join(parts[-2:]) if len(parts) >= 2 else parts[-1]
 
 
 # --------------------------------------------------------------------------- verbs
@@ -150,23 +87,14 @@ def cmd_observability(args) -> int:
 
 
 def cmd_filter(args) -> int:
-    import numpy as np
-
+    from ._report import write_estimates
     from ._run import filter_sessions
 
     method = _check_methods([args.method])[0]
     (session,) = _read_sessions([args.session])
     params = _load_params(args, [session])
     (est,) = filter_sessions([session], method, params)
-    robot = session.robot
-    names = [n for k, n in enumerate(robot.angle_names) if np.isfinite(est.angles[:, k]).any()]
-    cols = [robot.angle_names.index(n) for n in names]
-    os.makedirs(os.path.dirname(os.path.abspath(args.output)), exist_ok=True)
-    with open(args.output, "w") as f:
-        f.write(",".join(["t", *names]) + "\n")
-        for t, row in zip(session.t, est.angles[:, cols]):
-            f.write(repr(float(t)) + "," + ",".join(
-                "" if not np.isfinite(v) else format(float(v), ".9g") for v in row) + "\n")
+    write_estimates(args.output, session, est)
     _say(args, f"wrote {args.output}: {session.n_steps} rows of {method} estimates")
     return 0
 
@@ -178,12 +106,15 @@ def cmd_evaluate(args) -> int:
 
     robot = common_robot(sessions)
     params = _load_params(args, sessions)
+    from ._report import evaluate_sessions, format_table
+
     doc, angles = evaluate_sessions(sessions, methods, params, args.burn_in)
     if args.plot:
+        from ._report import session_name
         from .plots import plot_session
 
         for i, s in enumerate(sessions):
-            plot_session(s, {m: angles[m][i] for m in methods}, args.plot, _session_name(s.path))
+            plot_session(s, {m: angles[m][i] for m in methods}, args.plot, session_name(s.path))
         _say(args, f"figures in {args.plot}")
     if args.json:
         print(json.dumps(doc, indent=None))
@@ -348,7 +279,7 @@ def cmd_experiment(args) -> int:
 
         result = arm_imu_experiment(seed=args.seed)
     else:
-        from .filters.markov import markov_experiment
+        from .filters import markov_experiment
 
         if args.runs < 1:
             raise UsageError(f"--runs {args.runs}: expected at least 1")
@@ -379,90 +310,42 @@ def _jsonable(x):
     return float(x)
 
 
-def data_dir() -> str:
-    """The shipped sample sessions: inside the installed package, or ``data/`` of a checkout."""
-    here = os.path.dirname(os.path.abspath(__file__))
-    for cand in (os.path.join(here, "_data"), os.path.join(os.path.dirname(here), "data")):
-        if os.path.isdir(cand):
-            return cand
-    raise UsageError("the sample sessions are missing: reinstall kckf-jax (pip install .)")
-
-
-def demo_sets(root: str) -> dict[str, dict[str, list[str]]]:
-    """``{dataset: {"train": [...], "test": [...]}}`` from ``data/<dataset>/<split><i>``."""
-    sets = {}
-    for ds in sorted(os.listdir(root)):
-        d = os.path.join(root, ds)
-        if not os.path.isdir(d):
-            continue
-        split = {"train": [], "test": []}
-        for s in sorted(os.listdir(d)):
-            for key in split:
-                if s.startswith(key) and os.path.isfile(os.path.join(d, s, "meta.json")):
-                    split[key].append(os.path.join(d, s))
-        if split["test"]:
-            sets[ds] = split
-    return sets
-
-
 #: The demo's fit: fixed steps, no validation split (the test sessions stay unseen).
 DEMO_FIT_STEPS = 80
 DEMO_FIT_LR = 0.06
 
 
+def data_dir() -> str:
+    """The shipped sample sessions (``_demo.data_dir``), or a one-line error."""
+    from ._demo import sample_data_dir as find
+
+    root = find()
+    if root is None:
+        raise UsageError("the sample sessions are missing: reinstall kckf-jax (pip install .)")
+    return root
+
+
 def cmd_demo(args) -> int:
-    from ._fit import FitConfig, fit, fit_info
-    from ._params import save_params
+    from ._demo import run_demo
 
-    root = data_dir()
-    out = args.out
-    os.makedirs(out, exist_ok=True)
     t0 = time.perf_counter()
-    report = {}
-    md = ["# kckf demo", "",
-          f"Fitted KCKF: {DEMO_FIT_STEPS} Adam steps on the training sessions; every column "
-          "is scored on the held-out test sessions (RMSE, deg).", ""]
-    sets = demo_sets(root)
-    n_pad = max(len(split["train"]) for split in sets.values())
-    methods = [*PAPER_TABLE_METHODS, "kckf_fit"]
-    for ds, split in sets.items():
-        train = _read_sessions(split["train"], require_mocap=True)
-        test = _read_sessions(split["test"], require_mocap=True)
-        robot = test[0].robot
-        config = FitConfig(steps=args.steps, learning_rate=DEMO_FIT_LR)
-        bar = Progress(config.steps, f"fit {ds}", args.quiet)
-        result = fit(train, (), config, pad_trials_to=n_pad,
-                     callback=lambda r, bar=bar: bar.update(1, f"loss {r['loss_deg']:.3f} deg"))
-        bar.close()
-        params_path = os.path.join(out, f"{ds}_params.json")
-        save_params(result.params, params_path, fit_info(result, train, (), config))
-        doc, angles = evaluate_sessions(test, PAPER_TABLE_METHODS)
-        fitted, fitted_angles = evaluate_sessions(test, ["kckf"], result.params)
-        doc["methods"]["kckf_fit"] = fitted["methods"]["kckf"]
-        angles["kckf_fit"] = fitted_angles["kckf"]
-        doc["fit"] = {"params": params_path, "train_sessions": split["train"],
-                      "steps": result.steps_done, "seconds": round(result.seconds, 2),
-                      "train_rmse_deg": result.best_loss_deg}
-        report[ds] = doc
-        paper, fit_mean = (doc["methods"][m]["mean_rmse_deg"] for m in ("kckf", "kckf_fit"))
-        title = (f"{ds}: RMSE (deg) on {len(test)} test session(s), joints {robot.spec} "
-                 f"(paper Table 1 layout; KCKF fit = fitted on {len(train)} training "
-                 "session(s))")
-        _say(args, "", format_table(doc["methods"], robot, methods, title),
-             f"fitted KCKF mean RMSE {fit_mean:.3f} deg = {100 * fit_mean / paper:.0f} % of "
-             f"the paper-default KCKF's {paper:.3f} deg (fit: {result.seconds:.1f} s)")
-        md += [f"## {ds}", "", markdown_table(doc["methods"], robot, methods), ""]
-        from .plots import plot_session
+    bars = {}
 
-        for i, s in enumerate(test):
-            plot_session(s, {m: angles[m][i] for m in methods},
-                         os.path.join(out, "figures"), _session_name(s.path))
-    with open(os.path.join(out, "results.json"), "w") as f:
-        json.dump(report, f, indent=2)
-    with open(os.path.join(out, "table.md"), "w") as f:
-        f.write("\n".join(md))
-    _say(args, "", f"wrote {out}/table.md, {out}/results.json, {out}/*_params.json and "
-                   f"{out}/figures/ ({time.perf_counter() - t0:.1f} s)")
+    def progress(ds, total, rec):
+        if ds not in bars:
+            bars[ds] = Progress(total, f"fit {ds}", args.quiet)
+        bars[ds].update(1, f"loss {rec['loss_deg']:.3f} deg")
+        if rec["step"] == total:
+            bars[ds].close()
+
+    for text in run_demo(data_dir(), args.out, args.steps, DEMO_FIT_LR, progress):
+        for bar in bars.values():
+            bar.close()
+        bars.clear()
+        _say(args, "", text)
+    _say(args, "", f"wrote {args.out}/table.md, {args.out}/results.json, "
+                   f"{args.out}/*_params.json and {args.out}/figures/ "
+                   f"({time.perf_counter() - t0:.1f} s)")
     return 0
 
 

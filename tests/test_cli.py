@@ -49,11 +49,29 @@ def test_evaluate_json_layout(session, capsys):
     assert doc["sessions"] == [session]
     for m in ("kckf", "kf", "hall_l"):
         r = doc["methods"][m]
-        assert set(r) == {"rmse_deg", "mean_rmse_deg", "per_session"}
+        assert set(r) == {"rmse_deg", "mean_rmse_deg", "per_session", "path"}
+        assert r["path"] == "sequential"  # jittered time stamps, dropped readings
         assert r["mean_rmse_deg"] == pytest.approx(np.mean(list(r["rmse_deg"].values())))
         assert list(r["per_session"]) == [session]
     assert "phi_x" in doc["methods"]["kckf"]["rmse_deg"]
     assert "phi_x" not in doc["methods"]["hall_l"]["rmse_deg"]
+
+
+def test_evaluate_reports_the_steady_path_on_a_regular_session(tmp_path, capsys):
+    """A regular recording (a device clock's constant step, every reading) longer than the
+    steady path's 4,096 rows: every command takes the steady path and says so."""
+    from kckf_jax import simulate, write_session
+
+    s = simulate("x,y", "cyclic", seed=3, duration_s=45.0)
+    s.t = np.arange(s.n_steps) * 0.01
+    s._truth = None
+    path = str(tmp_path / "regular")
+    write_session(s, path)
+    code, out, _ = _run(capsys, "evaluate", path, "--method", "kckf", "--method", "kf", "--json")
+    assert code == 0
+    doc = json.loads(out)
+    assert doc["methods"]["kckf"]["path"] == "steady"
+    assert doc["methods"]["kf"]["path"] == "sequential"  # its covariance never converges
 
 
 def test_evaluate_table_goes_to_stderr_and_plots(session, tmp_path, capsys):

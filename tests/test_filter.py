@@ -10,8 +10,18 @@ from helpers import joints_of, random_params, random_recording, random_robot, re
 from helpers import series_of as make_series
 from reference import reference_baseline, reference_filter
 
-from kckf_jax import METHODS, Params, Robot, filter_batch, init_state, pad_series, run_filter, step
-from kckf_jax._model import full_state, structure
+from kckf_jax import (
+    METHODS,
+    Params,
+    Robot,
+    filter_batch,
+    full_state,
+    init_state,
+    pad_series,
+    run_filter,
+    step,
+    structure,
+)
 
 
 @pytest.mark.parametrize("seed", range(6))

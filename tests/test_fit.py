@@ -18,17 +18,22 @@ import numpy as np
 import pytest
 from jax.test_util import check_grads
 
-from kckf_jax import Params, Robot, simulate
-from kckf_jax._fit import (
+from kckf_jax import (
     FitConfig,
     FitInterrupted,
-    _filter_spec,
+    Params,
+    ParamsFileError,
+    Robot,
     fit,
-    initial_params,
+    load_params,
     loss_fn,
     make_batch,
+    params_to_dict,
+    save_params,
+    simulate,
 )
-from kckf_jax._params import ParamsFileError, load_params, params_to_dict, save_params
+from kckf_jax._fit import initial_params
+from kckf_jax._train import filter_spec
 from kckf_jax.cli import main
 
 ROBOT = Robot.from_spec("x,y")
@@ -106,7 +111,7 @@ def test_frozen_leaves_do_not_move(small_sessions):
     assert not np.array_equal(res.params.log_hall_c, init.log_hall_c)
     with pytest.raises(ValueError, match="unknown leaf 'log_nothing'"):
         FitConfig(freeze=("log_nothing",))
-    assert _filter_spec(init, ("log_q",)).log_q is False
+    assert filter_spec(init, ("log_q",)).log_q is False
 
 
 def test_interrupted_fit_resumes_with_nothing_lost(small_sessions, tmp_path):
@@ -223,8 +228,8 @@ SHARDING_SCRIPT = textwrap.dedent("""
     import jax
     jax.config.update("jax_enable_x64", True)
     import equinox as eqx, jax.numpy as jnp, numpy as np
-    from kckf_jax import simulate
-    from kckf_jax._fit import FitConfig, fit, initial_params, loss_fn, make_batch, shard_batch
+    from kckf_jax import FitConfig, fit, loss_fn, make_batch, shard_batch, simulate
+    from kckf_jax._fit import initial_params
     assert jax.device_count() == 4
     sessions = [simulate("x,y", "cyclic", seed=s, duration_s=2.0, device_seed=1,
                          drop_prob=0.02) for s in range(6)]

@@ -16,31 +16,26 @@ import numpy as np
 import pytest
 from jax.test_util import check_grads
 
-from kckf_jax.filters.gait_sim import (
-    SEGMENTS,
-    GaitConfig,
-    gait_pattern,
-    gated_accel_error,
-    reliability,
-    simulate_gait,
-)
 from kckf_jax.filters.markov import (
-    METHODS,
-    N_SYSTEM,
-    TABLE2,
+    GaitConfig,
     MarkovParams,
     fit_markov,
     gait_series,
+    gated_accel_error,
     markov_batch,
     markov_experiment,
     markov_init,
     markov_loss,
     markov_step,
+    matched_markov_params,
     perturb_markov_params,
     run_markov,
     scan_markov,
+    simulate_gait,
     to_paper,
 )
+from kckf_jax.filters.markov._filter import METHODS, N_SYSTEM, SEGMENTS, TABLE2
+from kckf_jax.filters.markov._sim import gait_pattern, reliability
 
 DEG = math.pi / 180
 G = 9.80665
@@ -205,7 +200,7 @@ def test_step_by_step_equals_scan(short_trials):
 
 @pytest.mark.parametrize("method", METHODS)
 def test_vmap_equals_loop(method, short_trials):
-    params = MarkovParams.matched(SHORT, calibration_trials=2, dtype=jnp.float64)
+    params = matched_markov_params(SHORT, calibration_trials=2, dtype=jnp.float64)
     series = gait_series(short_trials, jnp.float64)
     batch = markov_batch(params, series, method)
     for b in range(short_trials.n_trials):
@@ -286,7 +281,7 @@ def test_float32_long_run_is_finite_and_positive_definite(method, long_trial):
 
 @pytest.mark.parametrize("method", METHODS)
 def test_float32_follows_float64(method, long_trial):
-    params = MarkovParams.matched(calibration_trials=2, dtype=jnp.float64)
+    params = matched_markov_params(calibration_trials=2, dtype=jnp.float64)
     _, est32 = run_markov(params.astype(jnp.float32),
                           gait_series(long_trial, jnp.float32, index=0), method)
     _, est64 = run_markov(params, gait_series(long_trial, jnp.float64, index=0), method)

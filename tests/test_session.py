@@ -9,9 +9,15 @@ import os
 import numpy as np
 import pytest
 
-from kckf_jax import _session
-from kckf_jax._robot import Robot
-from kckf_jax._session import Session, SessionError, align_mocap, read_session, write_session
+from kckf_jax import (
+    Robot,
+    Session,
+    SessionError,
+    _session,
+    align_mocap,
+    read_session,
+    write_session,
+)
 
 SPEC = "x,y,x,y"
 

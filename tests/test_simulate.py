@@ -5,8 +5,17 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from kckf_jax import Robot, SimConfig, hall_voltage, read_session, simulate, write_session
-from kckf_jax._hall import DEG, hall_angle
+from kckf_jax import (
+    Robot,
+    SimConfig,
+    hall_angle,
+    hall_voltage,
+    read_session,
+    simulate,
+    write_session,
+)
+
+DEG = np.pi / 180.0
 
 
 def test_seeded_and_deterministic():

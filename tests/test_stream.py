@@ -17,9 +17,18 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from kckf_jax import Params, Robot, run_filter, simulate, write_session
-from kckf_jax._filter import SensorSeries
-from kckf_jax._stream import USED, PacketParser, StreamingFilter
+from kckf_jax import (
+    PacketParser,
+    Params,
+    Robot,
+    SensorSeries,
+    Steady,
+    StreamingFilter,
+    run_filter,
+    simulate,
+    write_session,
+)
+from kckf_jax._stream import USED
 
 ROBOT = Robot.from_spec("x,y,x,y")
 
@@ -80,9 +89,7 @@ def test_host_path_engages_leaves_and_equals_batch(dtype, tol):
     A missing Hall reading, a missing used gyro reading and a lost packet each hand the state
     back to the device step; it comes back after another run of regular packets. Throughout,
     the estimates are the batch filter's over the packets that arrived."""
-    from kckf_jax._fast import HEAD_ROWS
-
-    head = HEAD_ROWS[np.dtype(dtype)]
+    head = Steady().head_rows(dtype)
     n = 2 * head + 1200
     s = _regular_session(n / 100.0)
     s.hall_v[head + 300, 2] = np.nan

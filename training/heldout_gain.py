@@ -15,8 +15,7 @@ import argparse
 import json
 import os
 
-from kckf_jax import Robot, filter_sessions, rmse_table, simulate
-from kckf_jax._fit import FitConfig, fit
+from kckf_jax import FitConfig, Robot, filter_sessions, fit, rmse_table, simulate
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 

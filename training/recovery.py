@@ -18,10 +18,18 @@ import time
 
 import numpy as np
 
-from kckf_jax import Params, Robot, filter_sessions, rmse_table, simulate
-from kckf_jax._fit import FitConfig, fit
-from kckf_jax._hall import DEG
-from kckf_jax._metrics import fused_hall_error
+from kckf_jax import (
+    FitConfig,
+    Params,
+    Robot,
+    filter_sessions,
+    fit,
+    fused_hall_error,
+    rmse_table,
+    simulate,
+)
+
+DEG = np.pi / 180.0
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 

@@ -1,8 +1,9 @@
-"""The filters as pure one-step functions, strung together by ``jax.lax.scan``.
+"""The filter's kernel: its types, the block operations, ``step`` and ``scan_filter``.
 
 ``step(params, state, inputs, method) -> (state, estimate)`` is the only implementation of
-each method; ``run_filter`` scans it over a recording, ``jax.vmap(run_filter)`` runs many
-trials, and the streaming wrapper calls it once per packet.
+each method; ``scan_filter`` strings it together with ``lax.scan`` over a recording. Every way
+of computing the filter (``_paths``: sequential, steady, parallel, ...), the streaming filter
+and the exported step are built on what is here; this module imports none of them.
 
 Methods:
 
@@ -23,9 +24,9 @@ Conventions shared with the NumPy reference in ``tests/``:
 * a padded step (``dt = 0``, every reading NaN) leaves the state unchanged.
 
 Numerics (docs/numerics.md): measurements are processed one scalar at a time (``R`` is
-diagonal, so this equals the paper's joint update), each with the Joseph form; the constraint
-rows are conditioned the same way with zero noise in the coordinates of ``_model.structure``.
-There is no matrix inverse or LAPACK call anywhere in a step.
+diagonal, so this equals the paper's joint update), each with the Joseph form
+(``_kalman.py``); the constraint rows are conditioned the same way with zero noise in the
+coordinates of ``_model.structure``. There is no matrix inverse or LAPACK call in a step.
 """
 
 from __future__ import annotations
@@ -36,7 +37,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
+from ._custom_types import BlockCov, BlockHall, BlockRates, BlockState, BlockValid
 from ._hall import hall_angle, hall_slope
+from ._kalman import coordinate_update, symmetrise
 from ._model import (
     FILTER_METHODS,
     block_gather,
@@ -66,37 +69,52 @@ class SensorSeries(eqx.Module):
 class FilterState(eqx.Module):
     """What a filter carries from one step to the next.
 
-    For the Kalman filters ``z`` (``P x Nz``) and ``P`` (``P x Nz x Nz``) are the estimate and
+    For the Kalman filters ``z`` (``Nb x Nz``) and ``P`` (``Nb x Nz x Nz``) are the estimate and
     covariance of every axis block in the filter's coordinates (``_model.Structure``; use
     ``full_state`` for the paper's ``x`` and its covariance). For the baselines ``z`` holds the
     angles and ``P`` is empty. ``gyro_hold`` is the last valid rate of every gyro channel.
+    The paths carry a batch of states, one per trial (a leading axis on every leaf).
     """
 
     z: Float[Array, "*b Nz"]
     P: Float[Array, "*b Np Np"]
-    gyro_hold: Float[Array, " G"]
+    gyro_hold: Float[Array, "*B G"]
 
 
 class Estimate(eqx.Module):
     """Per-step output, in ``Robot.angle_names`` order (joint axes, then torso axes).
 
     ``angles`` (rad), ``angle_std`` (rad) and ``bias`` (rad/s, joint and torso biases); NaN
-    where the method does not estimate a quantity.
+    where the method does not estimate a quantity. ``path`` (static) names the computation
+    that produced it (``"sequential"``, ``"steady"``, ...; ``None`` for a bare ``step`` or
+    ``scan_filter``): every path gives the same estimates, to rounding.
     """
 
     angles: Float[Array, "*T K"]
     angle_std: Float[Array, "*T K"]
     bias: Float[Array, "*T K"]
+    path: str | None = eqx.field(static=True, default=None)
 
 
-def _check_method(method: str) -> None:
+def check_method(method: str) -> None:
+    """A ``ValueError`` naming the known methods unless ``method`` is one of ``METHODS``."""
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r}; expected one of {', '.join(METHODS)}")
 
 
+def estimated(robot, method: str) -> np.ndarray:
+    """Which of ``robot.angle_names`` ``method`` estimates (``K`` bools): every angle, except
+    the torso angles for the single-sensor Hall baselines."""
+    check_method(method)
+    out = np.ones(robot.n_angles, bool)
+    if method in ("hall_l", "hall_r"):
+        out[robot.n_joint_axes:] = False
+    return out
+
+
 def init_state(params: Params, method: str = "kckf") -> FilterState:
     """The state before the first row: zero angles and biases, covariance from ``params``."""
-    _check_method(method)
+    check_method(method)
     robot = params.robot
     dtype = params.log_q.dtype
     hold = jnp.zeros(3 * robot.n_links, dtype)
@@ -107,46 +125,6 @@ def init_state(params: Params, method: str = "kckf") -> FilterState:
     n = robot.n_angles if method == "gyro" else robot.n_joint_axes
     z0 = jnp.zeros(n, dtype) if method == "gyro" else jnp.full(n, jnp.nan, dtype)
     return FilterState(z0, jnp.zeros((0, 0), dtype), hold)
-
-
-def _scalar_update(
-    z: Float[Array, " N"],
-    P: Float[Array, "N N"],
-    index: int,
-    innovation: Float[Array, ""],
-    r: Float[Array, ""],
-    valid: Bool[Array, ""],
-) -> tuple[Float[Array, " N"], Float[Array, "N N"]]:
-    """Condition on ``z[index] + noise(r) = z[index] + innovation``; Joseph form, rank one.
-
-    ``P+ = (I - k e^T) P (I - k e^T)^T + r k k^T = P - k c^T - c k^T + s k k^T`` with
-    ``c = P e``, ``s = c[index] + r``, ``k = c / s``. Skipped when ``valid`` is false or the
-    innovation variance ``s`` is not positive (e.g. the constraint at ``dt = 0``).
-    """
-    c = P[:, index]
-    return joseph_rank_one(z, P, c, c[index] + r, innovation, valid)
-
-
-def joseph_rank_one(
-    z: Float[Array, " N"],
-    P: Float[Array, "N N"],
-    c: Float[Array, " N"],
-    s: Float[Array, ""],
-    innovation: Float[Array, ""],
-    valid: Bool[Array, ""],
-) -> tuple[Float[Array, " N"], Float[Array, "N N"]]:
-    """A scalar measurement update in Joseph form, for any filter of the package.
-
-    For a row ``h`` with noise ``r``: ``c = P h``, ``s = h' c + r``, ``k = c / s`` and
-    ``P+ = (I - k h') P (I - k h')' + r k k' = P - k c' - c k' + s k k'``; the estimate moves by
-    ``k * innovation``. Skipped (exactly, and with finite gradients) when ``valid`` is false or
-    ``s`` is not positive.
-    """
-    ok = valid & (s > 0)
-    k = jnp.where(ok, c / jnp.where(ok, s, 1.0), 0.0)
-    z = z + k * jnp.where(ok, innovation, 0.0)
-    P = P - jnp.outer(k, c) - jnp.outer(c, k) + s * jnp.outer(k, k)
-    return z, P
 
 
 def hall_measurements(
@@ -186,13 +164,16 @@ def fused_pairs(
     return h, 1.0 / Ws, ok
 
 
-def block_inputs(params: Params, st, gyro_hold: Float[Array, " G"], inputs: SensorSeries):
+def block_inputs(
+    params: Params, st, gyro_hold: Float[Array, " G"], inputs: SensorSeries
+) -> tuple[Float[Array, ""], BlockRates, tuple[BlockRates, BlockRates, BlockRates], BlockHall,
+           BlockHall, BlockValid]:
     """One row's inputs laid out by axis block (``_model.Structure``).
 
     Returns ``(dt, rates, noise, hb, rb, vb)``: the time step; the rates of the previous row
-    (``P x (m + 1)``, Eqs. 2, 9, 10); the process noise ``(alpha, beta, gamma)`` (Eq. 13,
-    each ``P x (m + 1)``); and each block joint's fused Hall reading (rad), its variance and
-    whether it exists (``P x m``, Eqs. 1, 5, 8, 20).
+    (``Nb x m1``, Eqs. 2, 9, 10); the process noise ``(alpha, beta, gamma)`` (Eq. 13,
+    each ``Nb x m1``); and each block joint's fused Hall reading (rad), its variance and
+    whether it exists (``Nb x m``, Eqs. 1, 5, 8, 20).
     """
     robot = params.robot
     dtype = gyro_hold.dtype
@@ -211,25 +192,37 @@ def block_inputs(params: Params, st, gyro_hold: Float[Array, " G"], inputs: Sens
     return dt, rates, noise, hb, rb, vb
 
 
-def block_update(st, z, P, rates, alpha, beta, gamma, hb, rb, vb, dt):
+def block_update(
+    st,
+    z: Float[Array, " Nz"],
+    P: Float[Array, "Nz Nz"],
+    rates: Float[Array, " m1"],
+    alpha: Float[Array, " m1"],
+    beta: Float[Array, " m1"],
+    gamma: Float[Array, " m1"],
+    hb: Float[Array, " m"],
+    rb: Float[Array, " m"],
+    vb: Bool[Array, " m"],
+    dt: Float[Array, ""],
+) -> tuple[Float[Array, " Nz"], Float[Array, "Nz Nz"]]:
     """One axis block's predict and update (the filter's arithmetic, for one block).
 
     Predict ``y = [z, e]`` (Eqs. 3, 9-13); for the KCKF condition on the perfect measurement
     ``e = sum theta - phi = 0`` (Eqs. 15-19); then one scalar Joseph update per joint with its
     fused Hall reading (Eqs. 4-5, 8, 20). For fixed ``P``, ``dt`` and masks the new ``z`` is
-    linear in ``(z, rates, hb)``: the fast paths (``_fast.py``) use exactly that.
+    linear in ``(z, rates, hb)``: the steady and parallel paths (``_paths``) use exactly that.
     """
     y, S = predicted_moments(st, z, P, rates, (alpha, beta, gamma), dt)
     for i in range(st.n_e):
         e = st.n_z + i
-        y, S = _scalar_update(y, S, e, -y[e], jnp.zeros((), z.dtype), dt > 0)
+        y, S = coordinate_update(y, S, e, -y[e], jnp.zeros((), z.dtype), dt > 0)
     z, P = y[: st.n_z], S[: st.n_z, : st.n_z]
     for i in range(st.m):
-        z, P = _scalar_update(z, P, i, hb[i] - z[i], rb[i], vb[i])
-    return z, 0.5 * (P + P.T)
+        z, P = coordinate_update(z, P, i, hb[i] - z[i], rb[i], vb[i])
+    return z, symmetrise(P)
 
 
-def block_estimate(st, z: Float[Array, "P Nz"], P: Float[Array, "P Nz Nz"]) -> Estimate:
+def block_estimate(st, z: BlockState, P: BlockCov) -> Estimate:
     """Angles, their standard deviations and biases from the block states, in angle order."""
     T = jnp.asarray(st.T, z.dtype)
     m1 = st.m + 1
@@ -279,7 +272,7 @@ def step(
     Pure and jit-friendly (``method`` must be static). ``inputs`` is one row of a
     ``SensorSeries``.
     """
-    _check_method(method)
+    check_method(method)
     if method in FILTER_METHODS:
         return _kalman_step(params, state, inputs, method)
     return _baseline_step(params, state, inputs, method)
@@ -297,7 +290,7 @@ def scan_filter(
     ``T`` steps stores about ``T / remat_chunk + remat_chunk`` states instead of every
     intermediate of every step. The forward result is unchanged.
     """
-    _check_method(method)
+    check_method(method)
     if state is None:
         state = init_state(params, method)
 
@@ -325,103 +318,6 @@ def scan_filter(
     final, est = jax.lax.scan(chunk_body, state, chunks)
     est = jax.tree_util.tree_map(lambda x: x.reshape((n * c,) + x.shape[2:])[:T], est)
     return final, est
-
-
-def run_filter(
-    params: Params, series: SensorSeries, method: str = "kckf", state: FilterState | None = None,
-    path: str = "auto",
-) -> tuple[FilterState, Estimate]:
-    """Filter a whole recording: ``lax.scan`` of ``step`` over the rows of ``series``, jitted.
-
-    Args:
-        params: the filter parameters (their dtype sets the computation's precision).
-        series: one trial, ``dt`` of shape (T,). Use ``filter_batch`` for a batch of padded
-            trials (``jax.vmap``).
-        method: one of ``METHODS``.
-        state: the starting state (default ``init_state(params, method)``).
-        path: how to compute it (all give the same estimates; ``docs/performance.md``):
-            ``"sequential"`` (the scan of ``step``), ``"steady"`` (constant time step, no
-            missing reading, constant Hall noise: the converged gain after the first rows),
-            ``"parallel"`` (covariance scan, then the mean by associative scan), or
-            ``"auto"`` (default: ``"steady"`` where it applies, else the sequential path on a
-            CPU and the parallel path on an accelerator).
-
-    Returns:
-        The final state and an ``Estimate`` with a leading time axis.
-
-    Example:
-        >>> robot = Robot.from_spec("x,y")
-        >>> params = Params.paper_defaults(robot)
-        >>> series = SensorSeries(jnp.full(5, 0.01), jnp.zeros((5, 9)), jnp.ones((5, 4)))
-        >>> final, est = run_filter(params, series, "kckf")
-        >>> est.angles.shape
-        (5, 4)
-    """
-    _check_method(method)
-    from ._fast import plan_path
-
-    path, verify = plan_path(params, series, method, path)
-    if verify:
-        final, est, ok = _run_filter_checked(params, series, method, state)
-        if bool(ok):
-            return final, est
-        path = "sequential"  # a reading is missing: the sequential filter handles it
-    return _run_filter(params, series, method, state, path)
-
-
-@eqx.filter_jit
-def _run_filter_checked(params, series, method, state):
-    from ._fast import steady_filter_checked
-
-    return steady_filter_checked(params, series, method, state)
-
-
-@eqx.filter_jit
-def _run_filter(params, series, method, state, path):
-    if path == "steady":
-        from ._fast import steady_filter
-
-        return steady_filter(params, series, method, state)
-    if path == "parallel":
-        from ._fast import parallel_filter
-
-        return parallel_filter(params, series, method, state)
-    return scan_filter(params, series, method, state)
-
-
-def filter_batch(params: Params, series: SensorSeries, method: str = "kckf",
-                 path: str = "auto") -> Estimate:
-    """``run_filter`` over a batch of trials (leading axis ``B``), padded to one length."""
-    _check_method(method)
-    from ._fast import plan_path
-
-    path, verify = plan_path(params, series, method, path)
-    if verify:
-        est, ok = _filter_batch_checked(params, series, method)
-        if bool(ok):
-            return est
-        path = "sequential"  # a reading is missing: the sequential filter handles it
-    return _filter_batch(params, series, method, path)
-
-
-@eqx.filter_jit
-def _filter_batch_checked(params, series, method):
-    from ._fast import steady_batch_checked
-
-    return steady_batch_checked(params, series, method)
-
-
-@eqx.filter_jit
-def _filter_batch(params, series, method, path):
-    if path == "steady":
-        from ._fast import steady_batch
-
-        return steady_batch(params, series, method)
-    if path == "parallel":
-        from ._fast import parallel_filter
-
-        return jax.vmap(lambda s: parallel_filter(params, s, method)[1])(series)
-    return jax.vmap(lambda s: scan_filter(params, s, method)[1])(series)
 
 
 def pad_series(series: list[SensorSeries], length: int | None = None) -> SensorSeries:

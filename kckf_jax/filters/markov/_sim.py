@@ -53,12 +53,10 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
+import jax.numpy as jnp
 import numpy as np
 
-DEG = math.pi / 180.0
-G_M_S2 = 9.80665
-SEGMENTS = ("trunk", "thigh", "shank", "foot")
-JOINTS = ("hip", "knee", "ankle")
+from ._filter import DEG, G_M_S2, TABLE2, GaitSeries, MarkovParams
 
 #: Normal gait, landmark values (percent of the gait cycle from heel strike, degrees) read off
 #: the normative curves of Perry & Burnfield, "Gait Analysis: Normal and Pathological Function",
@@ -535,3 +533,47 @@ def gated_accel_error(trials: GaitTrials, zeta: float | np.ndarray = 0.01) -> np
     angle = np.arcsin(np.clip(trials.accel[..., 0] / G_M_S2, -1.0, 1.0))
     err2 = np.where(ok, (angle - trials.angles) ** 2, 0.0)
     return np.sqrt(err2.sum(axis=(0, 1)) / np.maximum(ok.sum(axis=(0, 1)), 1))
+
+
+# ---------------------------------------------------------------------------- to the filter
+def gait_series(trials: GaitTrials, dtype=None, index: int | None = None) -> GaitSeries:
+    """The filter inputs of simulated ``trials`` (all, or trial ``index``) as JAX arrays."""
+    dtype = dtype or jnp.asarray(0.0).dtype
+    sl = slice(None) if index is None else index
+    return GaitSeries(*(jnp.asarray(getattr(trials, k)[sl], dtype)
+                        for k in ("dt", "gyro", "accel", "encoder")))
+
+
+def matched_markov_params(config: GaitConfig | None = None, *, calibration_trials: int = 20,
+                   seed: int = 12345, dtype=None) -> MarkovParams:
+    """The simulator's true values (``GaitConfig``) in the filters' terms: the filters'
+    assumed parameters at 0 % uncertainty in ``markov_experiment``.
+
+    * ``sigma_g``: the gyro's per-sample noise; ``tau_g``: its bias correlation times
+      (Table 2's); ``sigma_bg = s_b sqrt(2 / (tau_g T))``, the driving noise of a
+      Gauss-Markov bias of stationary deviation ``s_b`` (per-sample form of Eq. 26);
+    * ``sigma_a``: the RMS error of the accelerometer angle over the samples that Eq. 30
+      accepts (``gated_accel_error`` on ``calibration_trials`` trials simulated with
+      ``seed``, not the experiment's): sensor noise and bias, and the dynamic acceleration
+      that the modulus test lets through, which dominates;
+    * ``zeta``: Table 2's 0.01; ``sigma_enc``: quantisation (step / sqrt(12)) and noise;
+    * ``p0_angle``: the accelerometer angle's error at rest (bias and noise over ``g``);
+      ``p0_bias``: the gyro bias's stationary deviation.
+    """
+    cfg = config or GaitConfig()
+    T = 1.0 / cfg.rate_hz
+    tau = np.asarray(cfg.gyro_tau_s, dtype=np.float64)
+    s_b = cfg.gyro_bias_dps * DEG
+    trials = simulate_gait(calibration_trials, seed, cfg)
+    step_rad = 2.0 * math.pi / cfg.encoder_counts
+    return MarkovParams.from_physical(
+        zeta=TABLE2["zeta"],
+        sigma_g=cfg.gyro_noise_dps * DEG,
+        sigma_bg=s_b * np.sqrt(2.0 / (tau * T)),
+        sigma_a=gated_accel_error(trials, np.asarray(TABLE2["zeta"])),
+        tau_g=tau,
+        sigma_enc=math.hypot(step_rad / math.sqrt(12.0), cfg.encoder_noise_deg * DEG),
+        p0_angle=math.hypot(cfg.accel_bias_mg, cfg.accel_noise_mg) * 1e-3,
+        p0_bias=s_b,
+        dtype=dtype,
+    )

@@ -85,7 +85,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
-from .._filter import joseph_rank_one
+from ..._kalman import coordinate_update, symmetrise
 
 DEG = np.pi / 180.0
 GRAVITY_MPS2 = 9.81
@@ -369,18 +369,8 @@ def _scalar_update(
     r: Float[Array, ""],
     valid: Bool[Array, ""],
 ) -> tuple[Float[Array, " N"], Float[Array, "N N"]]:
-    """Condition on the scalar ``y = x[i] + noise(r)``; Joseph form, rank one.
-
-    ``P+ = (I - k e^T) P (I - k e^T)^T + r k k^T = P - k c^T - c k^T + s k k^T`` with
-    ``c = P e``, ``s = c[i] + r``, ``k = c / s``. Skipped when ``valid`` is false or ``s`` is
-    not positive.
-    """
-    c = P[:, i]
-    return joseph_rank_one(x, P, c, c[i] + r, y - x[i], valid)
-
-
-def _symmetrise(P):
-    return 0.5 * (P + jnp.swapaxes(P, -1, -2))
+    """Condition on the scalar ``y = x[i] + noise(r)`` (``_kalman.coordinate_update``)."""
+    return coordinate_update(x, P, i, y - x[i], r, valid)
 
 
 def arm_imu_init(params: ArmImuParams, ref_rot: Float[ArrayLike, "3 3"] | None = None
@@ -469,7 +459,7 @@ def arm_imu_step(
     pos, pos_cov = upd3(pos, pos_cov, 2, a_meas, params.sigma_acc**2,
                         jnp.broadcast_to(acc_ok, (3,)))
 
-    pos_cov, rot_cov = _symmetrise(pos_cov), _symmetrise(rot_cov)
+    pos_cov, rot_cov = symmetrise(pos_cov), symmetrise(rot_cov)
     new = ArmImuState(
         pos=pos, pos_cov=pos_cov, rot=rot, rot_cov=rot_cov, ref=state.ref,
         last_pos=jnp.where(pos_ok, p_meas, state.last_pos),

@@ -63,28 +63,20 @@ Numerics and conventions (ours, not the paper's):
 from __future__ import annotations
 
 import math
-import time
 from collections.abc import Sequence
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optax
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from .._filter import joseph_rank_one
-from .gait_sim import (
-    G_M_S2,
-    JOINTS,
-    SEGMENTS,
-    GaitConfig,
-    GaitTrials,
-    gated_accel_error,
-    simulate_gait,
-)
+from ..._kalman import row_update, symmetrise
 
 DEG = math.pi / 180.0
+G_M_S2 = 9.80665
+SEGMENTS = ("trunk", "thigh", "shank", "foot")
+JOINTS = ("hip", "knee", "ankle")
 METHODS = ("kf", "mkf")
 N_SEG = len(SEGMENTS)
 N_JOINT = len(JOINTS)
@@ -213,41 +205,6 @@ class MarkovParams(eqx.Module):
             sigma_bg=np.asarray(TABLE2["sigma_bg_deg"]) * DEG,
             sigma_a=np.asarray(TABLE2["sigma_a_deg"]) * DEG,
             tau_g=TABLE2["tau_g_s"],
-            dtype=dtype,
-        )
-
-    @classmethod
-    def matched(cls, config: GaitConfig | None = None, *, calibration_trials: int = 20,
-                seed: int = 12345, dtype=None) -> MarkovParams:
-        """The simulator's true values (``GaitConfig``) in the filters' terms: the filters'
-        assumed parameters at 0 % uncertainty in ``markov_experiment``.
-
-        * ``sigma_g``: the gyro's per-sample noise; ``tau_g``: its bias correlation times
-          (Table 2's); ``sigma_bg = s_b sqrt(2 / (tau_g T))``, the driving noise of a
-          Gauss-Markov bias of stationary deviation ``s_b`` (per-sample form of Eq. 26);
-        * ``sigma_a``: the RMS error of the accelerometer angle over the samples that Eq. 30
-          accepts (``gated_accel_error`` on ``calibration_trials`` trials simulated with
-          ``seed``, not the experiment's): sensor noise and bias, and the dynamic acceleration
-          that the modulus test lets through, which dominates;
-        * ``zeta``: Table 2's 0.01; ``sigma_enc``: quantisation (step / sqrt(12)) and noise;
-        * ``p0_angle``: the accelerometer angle's error at rest (bias and noise over ``g``);
-          ``p0_bias``: the gyro bias's stationary deviation.
-        """
-        cfg = config or GaitConfig()
-        T = 1.0 / cfg.rate_hz
-        tau = np.asarray(cfg.gyro_tau_s, dtype=np.float64)
-        s_b = cfg.gyro_bias_dps * DEG
-        trials = simulate_gait(calibration_trials, seed, cfg)
-        step_rad = 2.0 * math.pi / cfg.encoder_counts
-        return cls.from_physical(
-            zeta=TABLE2["zeta"],
-            sigma_g=cfg.gyro_noise_dps * DEG,
-            sigma_bg=s_b * np.sqrt(2.0 / (tau * T)),
-            sigma_a=gated_accel_error(trials, np.asarray(TABLE2["zeta"])),
-            tau_g=tau,
-            sigma_enc=math.hypot(step_rad / math.sqrt(12.0), cfg.encoder_noise_deg * DEG),
-            p0_angle=math.hypot(cfg.accel_bias_mg, cfg.accel_noise_mg) * 1e-3,
-            p0_bias=s_b,
             dtype=dtype,
         )
 
@@ -411,21 +368,6 @@ def predict(
     return MarkovState(z, P, gyro)
 
 
-def scalar_update(
-    z: Float[Array, " N"],
-    P: Float[Array, "N N"],
-    h: Float[Array, " N"],
-    y: Float[Array, ""],
-    r: Float[Array, ""],
-    valid: Bool[Array, ""],
-) -> tuple[Float[Array, " N"], Float[Array, "N N"]]:
-    """Condition on ``y = h' z + v``, ``v ~ N(0, r)`` (Eqs. 23-25 for one row), Joseph form:
-    ``P+ = (I - k h') P (I - k h')' + r k k' = P - k c' - c k' + s k k'`` with ``c = P h``,
-    ``s = h' c + r``, ``k = c / s``. Skipped (exactly) when ``valid`` is false."""
-    c = P @ h
-    return joseph_rank_one(z, P, c, h @ c + r, y - h @ z, valid)
-
-
 def markov_step(
     params: MarkovParams, state: MarkovState, inputs: GaitSeries, method: str = "mkf"
 ) -> tuple[MarkovState, MarkovEstimate]:
@@ -453,16 +395,16 @@ def markov_step(
         # Sec. 2.2 per segment: each accelerometer corrects its own segment when reliable.
         updated = rho < params.zeta
         for i in range(N_SEG):
-            z, P = scalar_update(z, P, H_angle[i], theta_a[i], r_a[i], updated[i])
+            z, P = row_update(z, P, H_angle[i], theta_a[i], r_a[i], updated[i])
     else:
         # Eqs. 27-30: the mode's accelerometer, then the encoders, or nothing at all.
         reliable = rho[mode] < params.zeta[mode]
         updated = (jnp.arange(N_SEG) == mode) & reliable
-        z, P = scalar_update(z, P, H_angle[mode], theta_a[mode], r_a[mode], reliable)
+        z, P = row_update(z, P, H_angle[mode], theta_a[mode], r_a[mode], reliable)
         for j in range(N_JOINT):
             h = jnp.zeros(2 * N_SEG, dtype).at[j + 1].set(1.0)  # u_{j+1} is encoder j
-            z, P = scalar_update(z, P, h, enc[j], params.sigma_enc[j] ** 2, reliable)
-    P = 0.5 * (P + P.T)
+            z, P = row_update(z, P, h, enc[j], params.sigma_enc[j] ** 2, reliable)
+    P = symmetrise(P)
     Linv = jnp.asarray(_LINV, dtype)
     var = jnp.sum((Linv @ P[:N_SEG, :N_SEG]) * Linv, axis=1)
     # The floor keeps sqrt's gradient finite if a variance ever rounds to zero.
@@ -507,6 +449,7 @@ def run_markov(
         The final state and a ``MarkovEstimate`` with a leading time axis.
 
     Example:
+        >>> from kckf_jax.filters import gait_series, simulate_gait
         >>> trial = gait_series(simulate_gait(1, seed=0), index=0)
         >>> final, est = run_markov(MarkovParams.table2(), trial, "mkf")
         >>> est.angles.shape
@@ -527,14 +470,6 @@ def markov_batch(params: MarkovParams, series: GaitSeries, method: str = "mkf",
 
 
 # ---------------------------------------------------------------------------- helpers
-def gait_series(trials: GaitTrials, dtype=None, index: int | None = None) -> GaitSeries:
-    """The filter inputs of simulated ``trials`` (all, or trial ``index``) as JAX arrays."""
-    dtype = dtype or jnp.asarray(0.0).dtype
-    sl = slice(None) if index is None else index
-    return GaitSeries(*(jnp.asarray(getattr(trials, k)[sl], dtype)
-                        for k in ("dt", "gyro", "accel", "encoder")))
-
-
 def mean_error_deg(angles: Float[Array, "*b T S"], truth: Float[Array, "*b T S"]
                    ) -> Float[Array, "*b"]:
     """The figure of merit of Fig. 9: mean absolute angle error (deg) over steps and
@@ -549,169 +484,3 @@ def markov_loss(params: MarkovParams, series: GaitSeries, truth: Float[Array, "B
     return jnp.sqrt(jnp.mean((est.angles - truth) ** 2) + 1e-18)
 
 
-# ---------------------------------------------------------------------------- experiment
-LEVELS = (0, 5, 10, 15, 20)
-
-
-def uncertainty_factors(rng: np.random.Generator, level_pct: float, runs: int) -> np.ndarray:
-    """Factors (runs, ``N_SYSTEM``) uniform in ``[1 - level, 1 + level]``: each run's filter
-    parameters deviate from their nominal values by up to ``level_pct`` percent."""
-    u = rng.uniform(-1.0, 1.0, size=(runs, N_SYSTEM))
-    return 1.0 + level_pct / 100.0 * u
-
-
-def markov_experiment(runs: int = 20, seed: int = 0, *, levels: Sequence[float] = LEVELS,
-                      config: GaitConfig | None = None,
-                      params: MarkovParams | None = None) -> dict:
-    """The paper's Fig. 9 on simulated gait: mean estimation error (deg) of the per-segment KF
-    and of the Markovian KF for each parameter-uncertainty level.
-
-    ``runs`` trials are simulated once (``simulate_gait(runs, seed, config)``, common to every
-    level). At level ``L`` each run's filter parameters that form the system matrices
-    (``Phi``, ``Q``, ``R``: sigma_g, sigma_bg, sigma_a, tau_g, sigma_enc) deviate from the true
-    ones (``params``, default ``MarkovParams.matched(config)``) by independent uniform factors
-    in ``[1 - L, 1 + L]``, the same draw for both filters. Both filters also run once with
-    the paper's Table 2 as printed (``details["table2"]``). Every run of every level goes
-    through one ``vmap``-ed, jitted scan per filter.
-
-    Returns:
-        ``{"levels", "kf_deg", "mkf_deg", "ratio", "published_ratio", "our_ratio",
-        "details"}``: mean absolute errors per level, their ratio mkf / kf, the published
-        real-data ratio 0.94 / 1.20 (Nogueira et al. 2017) and ours at 0 % uncertainty;
-        ``details`` has RMS errors, per-segment errors, update rates, the Table 2 run, the
-        nominal parameters and the run time.
-
-    Example:
-        >>> out = markov_experiment(runs=2)
-        >>> all(m < k for m, k in zip(out["mkf_deg"], out["kf_deg"]))
-        True
-    """
-    if runs < 1:
-        raise ValueError(f"markov_experiment: runs must be >= 1, got {runs}")
-    t0 = time.perf_counter()
-    levels = [int(x) if float(x).is_integer() else float(x) for x in levels]
-    trials = simulate_gait(runs, seed, config)
-    params = params or MarkovParams.matched(config)
-    dtype = params.log_tau_g.dtype
-    rng = np.random.default_rng([seed, 9])
-    factors = np.concatenate([uncertainty_factors(rng, lv, runs) for lv in levels])
-    n_lv = len(levels)
-    n_sets = n_lv + 1  # every level, then Table 2
-    batch = jax.vmap(lambda f: perturb_markov_params(params, f))(jnp.asarray(factors, dtype))
-    table2 = MarkovParams.table2(dtype)
-    batch = jax.tree_util.tree_map(
-        lambda b, t: jnp.concatenate([b, jnp.broadcast_to(t, (runs,) + t.shape)]),
-        batch, table2)
-    series = jax.tree_util.tree_map(lambda a: jnp.tile(a, (n_sets,) + (1,) * (a.ndim - 1)),
-                                    gait_series(trials, dtype))
-    truth = jnp.tile(jnp.asarray(trials.angles, dtype), (n_sets, 1, 1))
-    out: dict = {"levels": levels}
-    details: dict = {"runs": runs, "seed": seed, "n_steps": int(trials.dt.shape[1]),
-                     "rate_hz": float(1.0 / trials.dt[0, 1]), "table2": {},
-                     "nominal_params": params.to_dict()}
-    for method in METHODS:
-        est = markov_batch(batch, series, method, batched_params=True)
-        err = np.asarray(mean_error_deg(est.angles, truth), np.float64).reshape(n_sets, runs)
-        rms = np.sqrt(np.asarray(jnp.mean((est.angles - truth) ** 2, axis=(1, 2)),
-                                 np.float64)).reshape(n_sets, runs) / DEG
-        seg = (np.asarray(jnp.mean(jnp.abs(est.angles - truth), axis=1), np.float64)
-               / DEG).reshape(n_sets, runs, N_SEG).mean(axis=1)
-        upd = np.asarray(jnp.mean(est.updated[:runs], axis=(0, 1)), np.float64)
-        out[f"{method}_deg"] = err[:n_lv].mean(axis=1).tolist()
-        details[method] = {
-            "rmse_deg": rms[:n_lv].mean(axis=1).tolist(),
-            "std_over_runs_deg": err[:n_lv].std(axis=1).tolist(),
-            "per_segment_deg": {s: seg[:n_lv, i].tolist() for i, s in enumerate(SEGMENTS)},
-            "update_fraction": {s: float(upd[i]) for i, s in enumerate(SEGMENTS)},
-        }
-        details["table2"][f"{method}_deg"] = float(err[n_lv].mean())
-        details["table2"][f"{method}_per_segment_deg"] = {
-            s: float(seg[n_lv, i]) for i, s in enumerate(SEGMENTS)}
-        if method == "mkf":
-            modes = np.asarray(est.mode[:runs])
-            details["mode_occupancy"] = {s: float(np.mean(modes == i))
-                                         for i, s in enumerate(SEGMENTS)}
-            details["no_reliable_fraction"] = float(
-                1.0 - np.asarray(est.updated[:runs]).any(axis=-1).mean())
-    out["ratio"] = [m / k for m, k in zip(out["mkf_deg"], out["kf_deg"])]
-    out["published_ratio"] = PUBLISHED_MKF_DEG / PUBLISHED_KF_DEG
-    out["our_ratio"] = out["ratio"][levels.index(0)] if 0 in levels else float(
-        np.mean(out["ratio"]))
-    details["table2"]["ratio"] = details["table2"]["mkf_deg"] / details["table2"]["kf_deg"]
-    details["seconds"] = round(time.perf_counter() - t0, 2)
-    out["details"] = details
-    return out
-
-
-# ---------------------------------------------------------------------------- fitting
-@eqx.filter_jit
-def _fit_step(params, opt_state, series, truth, opt, method):
-    loss, grads = eqx.filter_value_and_grad(markov_loss)(params, series, truth, method)
-    updates, opt_state = opt.update(grads, opt_state, params)
-    return eqx.apply_updates(params, updates), opt_state, loss
-
-
-def fit_markov(
-    method: str = "mkf",
-    *,
-    train_trials: int = 8,
-    test_trials: int = 8,
-    steps: int = 150,
-    learning_rate: float = 0.05,
-    seed: int = 0,
-    config: GaitConfig | None = None,
-    params: MarkovParams | None = None,
-    dtype=None,
-) -> dict:
-    """Fit the Table 2 parameters (and the encoder noise and initial covariance) of ``method``
-    by gradient descent (optax Adam on the log-parameters) on simulated gait, and report the
-    held-out error before and after.
-
-    The loss is the RMS angle error (rad) over ``train_trials`` trials simulated with ``seed``;
-    the held-out trials come from another seed. ``zeta`` is a threshold (zero gradient) and stays
-    at its starting value; the paper fitted the same table with a genetic algorithm.
-
-    Returns:
-        ``{"method", "steps", "params" (the fitted MarkovParams), "fitted" (physical values),
-        "loss_deg" (training RMS per step), "heldout_table2_deg", "heldout_fitted_deg" (mean
-        absolute error, the experiment's figure), "heldout_table2_rmse_deg",
-        "heldout_fitted_rmse_deg", "gain" (fraction of the held-out error removed),
-        "seconds"}``.
-
-    Example:
-        >>> out = fit_markov(train_trials=2, test_trials=2, steps=5, learning_rate=0.1,
-        ...                  config=GaitConfig(duration_s=8.0))
-        >>> out["heldout_fitted_deg"] < out["heldout_table2_deg"]
-        True
-    """
-    _check_method(method)
-    t0 = time.perf_counter()
-    dtype = dtype or jnp.asarray(0.0).dtype
-    start = (params or MarkovParams.table2()).astype(dtype)
-    train = simulate_gait(train_trials, seed, config)
-    test = simulate_gait(test_trials, seed + 10_000, config)
-    s_train, s_test = gait_series(train, dtype), gait_series(test, dtype)
-    y_train = jnp.asarray(train.angles, dtype)
-    y_test = jnp.asarray(test.angles, dtype)
-    opt = optax.adam(learning_rate)
-    p = start
-    opt_state = opt.init(p)
-    history = []
-    for _ in range(steps):
-        p, opt_state, loss = _fit_step(p, opt_state, s_train, y_train, opt, method)
-        history.append(float(loss) / DEG)
-
-    def heldout(q):
-        est = markov_batch(q, s_test, method)
-        mae = float(jnp.mean(mean_error_deg(est.angles, y_test)))
-        rmse = float(jnp.sqrt(jnp.mean((est.angles - y_test) ** 2))) / DEG
-        return mae, rmse
-
-    before, before_rmse = heldout(start)
-    after, after_rmse = heldout(p)
-    return {
-        "method": method, "steps": steps, "params": p, "fitted": p.to_dict(),
-        "loss_deg": history, "heldout_table2_deg": before, "heldout_fitted_deg": after,
-        "heldout_table2_rmse_deg": before_rmse, "heldout_fitted_rmse_deg": after_rmse,
-        "gain": 1.0 - after / before, "seconds": round(time.perf_counter() - t0, 2),
-    }

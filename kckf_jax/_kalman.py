@@ -1,0 +1,66 @@
+"""Kalman helpers shared by every filter of the package (the KCKF, the arm + IMU filter and the
+Markovian filter): one scalar measurement update in Joseph form, in three spellings, and the
+symmetrisation that follows a step.
+
+Every filter of the package processes its measurements one scalar row at a time (``R`` is
+diagonal, so this equals the joint update) and needs no matrix inverse or LAPACK call.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+from jaxtyping import Array, Bool, Float
+
+
+def joseph_rank_one(
+    z: Float[Array, " N"],
+    P: Float[Array, "N N"],
+    c: Float[Array, " N"],
+    s: Float[Array, ""],
+    innovation: Float[Array, ""],
+    valid: Bool[Array, ""],
+) -> tuple[Float[Array, " N"], Float[Array, "N N"]]:
+    """A scalar measurement update in Joseph form.
+
+    For a row ``h`` with noise ``r``: ``c = P h``, ``s = h' c + r``, ``k = c / s`` and
+    ``P+ = (I - k h') P (I - k h')' + r k k' = P - k c' - c k' + s k k'``; the estimate moves by
+    ``k * innovation``. Skipped (exactly, and with finite gradients) when ``valid`` is false or
+    ``s`` is not positive (e.g. a perfect measurement at a zero time step).
+    """
+    ok = valid & (s > 0)
+    k = jnp.where(ok, c / jnp.where(ok, s, 1.0), 0.0)
+    z = z + k * jnp.where(ok, innovation, 0.0)
+    P = P - jnp.outer(k, c) - jnp.outer(c, k) + s * jnp.outer(k, k)
+    return z, P
+
+
+def coordinate_update(
+    z: Float[Array, " N"],
+    P: Float[Array, "N N"],
+    index: int,
+    innovation: Float[Array, ""],
+    r: Float[Array, ""],
+    valid: Bool[Array, ""],
+) -> tuple[Float[Array, " N"], Float[Array, "N N"]]:
+    """Condition on a measurement of one coordinate, ``z[index] + noise(r)``, whose innovation
+    (measured minus ``z[index]``) is given: ``joseph_rank_one`` with ``h = e_index``."""
+    c = P[:, index]
+    return joseph_rank_one(z, P, c, c[index] + r, innovation, valid)
+
+
+def row_update(
+    z: Float[Array, " N"],
+    P: Float[Array, "N N"],
+    h: Float[Array, " N"],
+    y: Float[Array, ""],
+    r: Float[Array, ""],
+    valid: Bool[Array, ""],
+) -> tuple[Float[Array, " N"], Float[Array, "N N"]]:
+    """Condition on ``y = h' z + noise(r)``: ``joseph_rank_one`` with ``c = P h``."""
+    c = P @ h
+    return joseph_rank_one(z, P, c, h @ c + r, y - h @ z, valid)
+
+
+def symmetrise(P: Float[Array, "*b N N"]) -> Float[Array, "*b N N"]:
+    """``(P + P') / 2``: removes the rounding asymmetry the updates leave."""
+    return 0.5 * (P + jnp.swapaxes(P, -1, -2))

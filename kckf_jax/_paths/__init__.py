@@ -1,0 +1,40 @@
+"""Ways of computing the filter's estimates, as strategy objects (one module each).
+
+* ``AbstractPath`` (``_base.py``), with the one regularity check (``regular_step``) and the
+  one convergence measure (``relative_change``) every path and the streaming filter use;
+* ``Sequential``: the scan of the kernel's ``step`` (the reference, computes anything);
+* ``Steady``: the converged filter's constant map (regular recordings), built from the affine
+  maps of a step (``_affine.py``), a scan of per-row maps (``_row_scan.py``) and chunks of
+  matrix products (``_chunks.py``), each reverse mode beside its forward;
+* ``Parallel``: covariance phase, then the mean by associative scan (accelerators);
+* ``Auto``: the policy.
+
+To add a path: a final ``AbstractPath`` subclass in a module of its own, exported here and from
+``kckf_jax``, and a line in ``Auto.select``; nothing else changes.
+"""
+
+from ._affine import converged_map as converged_map
+from ._auto import Auto as Auto
+from ._auto import PathChoice as PathChoice
+from ._base import STEP_TOL_S as STEP_TOL_S
+from ._base import AbstractPath as AbstractPath
+from ._base import is_traced as is_traced
+from ._base import readings_present as readings_present
+from ._base import regular_step as regular_step
+from ._base import relative_change as relative_change
+from ._parallel import Parallel as Parallel
+from ._sequential import Sequential as Sequential
+from ._steady import Steady as Steady
+
+PATHS = {"auto": Auto, "sequential": Sequential, "steady": Steady, "parallel": Parallel}
+
+
+def as_path(path: str | AbstractPath) -> AbstractPath:
+    """A path object from a name (``"auto"``, ``"sequential"``, ``"steady"``, ``"parallel"``)
+    or a path object itself."""
+    if isinstance(path, AbstractPath):
+        return path
+    if path not in PATHS:
+        raise ValueError(f"path must be one of {', '.join(PATHS)} or a path object, got "
+                         f"{path!r}")
+    return PATHS[path]()

@@ -1,0 +1,67 @@
+"""``Auto``: the policy that picks a path, once, on concrete inputs, with reasons a user can read
+(as ``lineax.AutoLinearSolver`` picks a solver)."""
+
+from __future__ import annotations
+
+from typing import ClassVar, NamedTuple
+
+import jax
+
+from .._kernel import Estimate, FilterState, SensorSeries
+from .._params import Params
+from ._base import AbstractPath, is_traced
+from ._parallel import Parallel
+from ._sequential import Sequential
+from ._steady import Steady
+
+
+class PathChoice(NamedTuple):
+    """The path ``Auto`` picked, and why each faster one was passed over (``{name: reason}``)."""
+
+    path: AbstractPath
+    passed_over: dict[str, str]
+
+
+class Auto(AbstractPath):
+    """The fastest path that applies: ``Steady`` on a regular recording whose covariance
+    converges, else ``Parallel`` on an accelerator and ``Sequential`` on a CPU.
+
+    The choice is made on concrete inputs before anything is traced (``run_filter``,
+    ``filter_batch``, ``filter_sessions`` and the fitting loss all resolve ``Auto`` first).
+    Inside a transformation (``jit``, ``grad``, ``vmap`` of the caller's) the data cannot be
+    checked, so ``Auto`` takes the path that needs no check (``Sequential``) and says so in
+    ``passed_over``; pass a path explicitly to vouch for the data instead.
+
+    Attributes:
+        steady: the ``Steady`` path to try (its constants).
+        sequential: the ``Sequential`` path to fall back on (its remat chunk).
+    """
+
+    name: ClassVar[str] = "auto"
+    steady: Steady = Steady()
+    sequential: Sequential = Sequential()
+
+    def select(self, params: Params, series: SensorSeries, method: str,
+               state: FilterState | None = None) -> PathChoice:
+        """The path for these inputs, and why each faster one does not apply."""
+        passed: dict[str, str] = {}
+        if is_traced(params, series, state):
+            passed["steady"] = "the inputs are traced (inside jit or grad): not checked"
+        else:
+            why = self.steady.applies(params, series, method, state)
+            if why is None:
+                return PathChoice(self.steady, passed)
+            passed["steady"] = why
+        if jax.default_backend() != "cpu" and Parallel().applies(params, series, method) is None:
+            return PathChoice(Parallel(), passed)
+        passed["parallel"] = "slower than the sequential path on a CPU"
+        return PathChoice(self.sequential, passed)
+
+    def applies(self, params: Params, series: SensorSeries, method: str,
+                state: FilterState | None = None) -> str | None:
+        return None
+
+    def run(self, params: Params, series: SensorSeries, method: str, state: FilterState
+            ) -> tuple[FilterState, Estimate]:
+        return self.select(params, series, method, state).path.run(params, series, method,
+                                                                   state)

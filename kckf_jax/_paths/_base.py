@@ -1,0 +1,108 @@
+"""What every path shares: the abstract path, the one regularity check and the one convergence
+check.
+
+A *path* is one way of computing the filter's estimates (``Sequential``, ``Steady``,
+``Parallel``, ...); every path gives the same estimates to rounding. ``applies`` says, on
+concrete inputs, why a path cannot compute them (or ``None``); ``run`` computes them for a
+batch of trials. ``Auto`` (``_auto.py``) asks the faster paths in turn, and the first that
+applies runs.
+"""
+
+from __future__ import annotations
+
+import abc
+import functools
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Bool, Float
+
+from .._kernel import Estimate, FilterState, SensorSeries
+from .._params import Params
+from .._robot import Robot
+
+#: Two time steps closer than this (s) count as equal: a constant step to the filter.
+STEP_TOL_S = 1e-9
+
+
+class AbstractPath(eqx.Module):
+    """One way of computing the filter's estimates.
+
+    Subclasses are final, hold their tuning constants as (static) fields, and implement:
+
+    * ``applies(params, series, method, state=None) -> str | None``: why this path cannot
+      compute these (concrete) inputs from ``state`` (default the initial state), in words a
+      user can read, or ``None`` when it can. Values it cannot see (traced inputs) it does
+      not check: the caller vouches for them;
+    * ``run(params, series, method, state) -> (FilterState, Estimate)``: the filter over a
+      batch of trials (``series`` with a leading axis ``B``, ``state`` batched the same way);
+      traceable (no host work), differentiable.
+    """
+
+    name: eqx.AbstractClassVar[str]
+
+    @abc.abstractmethod
+    def applies(self, params: Params, series: SensorSeries, method: str,
+                state: FilterState | None = None) -> str | None:
+        raise NotImplementedError
+
+    @abc.abstractmethod
+    def run(self, params: Params, series: SensorSeries, method: str, state: FilterState
+            ) -> tuple[FilterState, Estimate]:
+        raise NotImplementedError
+
+
+def is_traced(*trees) -> bool:
+    """Whether any leaf of ``trees`` is a tracer (values unknown: inside ``jit``, ``grad``)."""
+    return any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(trees))
+
+
+# ---------------------------------------------------------------------------- regularity
+def readings_present(robot: Robot, gyro, hall_v, xp=jnp):
+    """Per row (any leading axes): whether every used gyro reading (``Robot.used_gyro_index``)
+    is there, and whether every Hall reading is. NumPy (``xp=np``: one packet in the streaming
+    filter) or JAX (a recording, on the device)."""
+    used = xp.take(gyro, xp.asarray(robot.used_gyro_index), axis=-1)
+    return xp.isfinite(used).all(axis=-1), xp.isfinite(hall_v).all(axis=-1)
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _regularity(robot: Robot, dt: Float[Array, "*B T"], gyro: Float[Array, "*B T G"],
+                hall_v: Float[Array, "*B T M"]
+                ) -> tuple[Float[Array, ""], Float[Array, ""], Bool[Array, ""], Bool[Array, ""]]:
+    """On the device, one small transfer back: the largest deviation of a time step (rows
+    after the first) from the first trial's second one, that step, and whether every used
+    gyro reading and every Hall reading is there."""
+    dt2 = jnp.reshape(dt, (-1, dt.shape[-1]))
+    first = dt2[0, 1]
+    gyro_ok, hall_ok = readings_present(robot, gyro, hall_v)
+    return jnp.max(jnp.abs(dt2[:, 1:] - first)), first, gyro_ok.all(), hall_ok.all()
+
+
+def regular_step(robot: Robot, series: SensorSeries) -> tuple[float | None, str | None]:
+    """The one regularity check: ``(step_s, None)`` when ``series`` (one recording ``T`` or a
+    batch ``B T``) has one constant time step shared by every trial and every reading the
+    filters use (``readings_present`` in every row); else ``(None, why)``. Traced inputs:
+    ``(None, None)``, unchecked."""
+    if is_traced(series):
+        return None, None
+    if np.ndim(series.dt) < 1 or np.shape(series.dt)[-1] < 2:
+        return None, "fewer than two rows"
+    dev, first, gyro_ok, hall_ok = _regularity(robot, series.dt, series.gyro, series.hall_v)
+    dev, first = float(dev), float(first)
+    if not (dev <= STEP_TOL_S and first > 0):  # also false for a NaN step
+        return None, ("the time step is not constant" if np.ndim(series.dt) == 1 else
+                      "the time step is not one constant shared by every trial")
+    if not bool(gyro_ok):
+        return None, "a gyro reading is missing"
+    if not bool(hall_ok):
+        return None, "a Hall reading is missing"
+    return first, None
+
+
+# ---------------------------------------------------------------------------- convergence
+def relative_change(P_old, P_new, xp=jnp):
+    """The one convergence measure: ``max |P_new - P_old| / max |P_new|`` (NumPy or JAX)."""
+    return xp.max(xp.abs(P_new - P_old)) / xp.maximum(xp.max(xp.abs(P_new)), 1e-300)

@@ -1,0 +1,67 @@
+"""The parallel path: the covariance recursion over every row, then the mean as an associative
+scan of the rows' affine maps (parallel in time: for accelerators, where the mean's sequential
+dependency is what limits).
+
+It computes anything the filter accepts (missing readings, uneven time steps, the voltage noise
+model). On a CPU it is slower than the sequential path: the covariance phase costs as much, and
+the associative scan's small batched products are slow there.
+"""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+from .._kernel import Estimate, FilterState, SensorSeries, block_estimate
+from .._model import FILTER_METHODS, structure
+from .._params import Params
+from ._affine import covariance_phase, series_inputs
+from ._base import AbstractPath
+
+
+class Parallel(AbstractPath):
+    """Covariance phase, then the mean by ``jax.lax.associative_scan``:
+    ``(A2, c2) o (A1, c1) = (A2 A1, A2 c1 + c2)``, no inverse."""
+
+    name: ClassVar[str] = "parallel"
+
+    def applies(self, params: Params, series: SensorSeries, method: str,
+                state: FilterState | None = None) -> str | None:
+        if method not in FILTER_METHODS:
+            return f"method {method!r} is not a Kalman filter"
+        return None
+
+    def run(self, params: Params, series: SensorSeries, method: str, state: FilterState
+            ) -> tuple[FilterState, Estimate]:
+        return jax.vmap(lambda s, x: _one_trial(params, s, method, x))(series, state)
+
+
+def _one_trial(params: Params, series: SensorSeries, method: str, state: FilterState
+               ) -> tuple[FilterState, Estimate]:
+    st = structure(params.robot, method)
+    dtype = state.z.dtype
+    series = jax.tree_util.tree_map(lambda x: jnp.asarray(x).astype(dtype), series)
+    (dt, rates, noise, hb, rb, vb), held = series_inputs(params, st, series, state.gyro_hold)
+    P_last, (Ps, As, Grs, Ghs) = covariance_phase(params, st, state.P,
+                                                  (dt, rates, noise, hb, rb, vb))
+    # c_k = Gr_k r_k + Gh_k h_k, with the entering state folded into the first row.
+    c = (jnp.einsum("kpaj,kpj->kpa", Grs, rates) + jnp.einsum("kpaj,kpj->kpa", Ghs, hb))
+    c = c.at[0].add(jnp.einsum("pab,pb->pa", As[0], state.z))
+    z = _compose(As, c)
+    est = jax.vmap(lambda zk, Pk: block_estimate(st, zk, Pk))(z, Ps)
+    return FilterState(z[-1], P_last, held[-1]), est
+
+
+def _compose(As: Float[Array, "T Nb Nz Nz"], c: Float[Array, "T Nb Nz"]
+             ) -> Float[Array, "T Nb Nz"]:
+    """Every ``z_k`` of ``z_k = A_k z_{k-1} + c_k`` (``z_{-1} = 0``) by associative scan."""
+    def combine(a, b):
+        A1, c1 = a
+        A2, c2 = b
+        return (jnp.einsum("...ij,...jk->...ik", A2, A1),
+                jnp.einsum("...ij,...j->...i", A2, c1) + c2)
+
+    return jax.lax.associative_scan(combine, (As, c))[1]

@@ -1,0 +1,260 @@
+"""The steady path: the converged filter as one constant affine map.
+
+On a regular recording (constant time step, every reading present) with the paper's constant
+Hall noise (``hall_noise="angle"``) the covariance converges, to 1e-14 relative within about
+4,000 rows at 100 Hz for the paper's parameters, and the filter becomes the constant map
+``z_k = A z_{k-1} + Wg g_{k-1} + Wh h_k``. The path runs the covariance recursion over the
+first ``head_rows`` rows once for every trial of the batch (``covariance_phase``; the trials
+share it, since it depends only on the time steps and the noise), applies those rows' own maps
+to every trial at once (``row_scan``), and serves every later row with the converged map, in
+chunks of matrix products (``chunk_rows``).
+
+``applies`` checks everything beforehand, on concrete inputs: the method and noise model, the
+length, the one regularity check (``regular_step``) and the one convergence check
+(``converges``: the covariance's relative change after the head, below ``tol``). ``run`` then
+has no branch and no fallback.
+"""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from .._kernel import Estimate, FilterState, SensorSeries, block_estimate, block_update, init_state
+from .._model import FILTER_METHODS, Structure, structure
+from .._params import Params
+from ._affine import (
+    covariance_phase,
+    input_weights,
+    last_finite,
+    output_map,
+    reading_maps,
+    series_inputs,
+    step_maps,
+)
+from ._base import AbstractPath, is_traced, regular_step, relative_change
+from ._chunks import ChunkPlan, chunk_operator, chunk_rows, raw_readings
+from ._row_scan import row_scan
+
+
+class Steady(AbstractPath):
+    """The converged filter's constant map after the first rows (see the module docstring).
+
+    Attributes (defaults measured in docs/performance.md):
+        min_rows: recordings of at most this many rows take another path.
+        head_rows_float32, head_rows_float64: rows filtered with their own maps before the
+            converged one takes over (at most ``min_rows``). The paper's parameters converge to
+            1e-10 within about 2,600 rows at 100 Hz and 1e-14 within 4,000; in float32 the
+            covariance reaches its rounding floor within about 1,000 rows, and switching at
+            2,048 gives the same estimates as at 4,096 to 1e-7 rad.
+        tol_float32, tol_float64: the covariance's relative change over one step after the
+            head below which it counts as converged.
+        chunk_rows: rows per chunk of the converged map (8 measured fastest of 4, 8 and 16
+            for the bench and the 3D robot).
+        carry_group, carry_scan: the chunks' entering states are solved for in groups of
+            ``carry_group`` chunks, until at most ``carry_scan`` remain for a plain scan.
+        mean_block: trial-rows per block of the pass over the readings (kept in cache).
+    """
+
+    name: ClassVar[str] = "steady"
+    min_rows: int = eqx.field(static=True, default=4096)
+    head_rows_float32: int = eqx.field(static=True, default=2048)
+    head_rows_float64: int = eqx.field(static=True, default=4096)
+    tol_float32: float = eqx.field(static=True, default=1e-5)
+    tol_float64: float = eqx.field(static=True, default=1e-10)
+    chunk_rows: int = eqx.field(static=True, default=8)
+    carry_group: int = eqx.field(static=True, default=16)
+    carry_scan: int = eqx.field(static=True, default=256)
+    mean_block: int = eqx.field(static=True, default=1 << 16)
+
+    def __check_init__(self):
+        for name in ("head_rows_float32", "head_rows_float64"):
+            if not 2 <= getattr(self, name) <= self.min_rows:
+                raise ValueError(f"Steady.{name}: expected 2 .. min_rows ({self.min_rows}), "
+                                 f"got {getattr(self, name)}")
+        if self.chunk_rows < 1 or self.carry_group < 2 or self.carry_scan < 1:
+            raise ValueError("Steady: chunk_rows and carry_scan must be >= 1, carry_group >= 2")
+
+    def head_rows(self, dtype) -> int:
+        return self.head_rows_float64 if np.dtype(dtype) == np.float64 else self.head_rows_float32
+
+    def tol(self, dtype) -> float:
+        return self.tol_float64 if np.dtype(dtype) == np.float64 else self.tol_float32
+
+    def model_reason(self, params: Params, method: str) -> str | None:
+        """Why the filter itself (whatever the data) never becomes a constant map, or None."""
+        if method not in FILTER_METHODS:
+            return f"method {method!r} is not a Kalman filter"
+        if method == "kf":
+            return ("the standard KF's torso angle and bias are unobservable (Eq. 21): its "
+                    "covariance never converges")
+        if params.hall_noise != "angle":
+            return "the voltage noise model makes the Hall noise vary with the data"
+        return None
+
+    def applies(self, params: Params, series: SensorSeries, method: str,
+                state: FilterState | None = None) -> str | None:
+        why = self.model_reason(params, method)
+        if why is not None:
+            return why
+        T = np.shape(series.dt)[-1] if np.ndim(series.dt) else 0
+        if T <= self.min_rows:
+            return f"{T} rows, not more than {self.min_rows}"
+        step_s, why = regular_step(params.robot, series)
+        if why is not None:
+            return why
+        if step_s is None or is_traced(params, state):
+            return None  # traced: the caller vouches for the data and the convergence
+        P0 = (init_state(params, method) if state is None else state).P
+        P0 = P0 if P0.ndim == 3 else P0[0]
+        return self.converges(params, method, step_s, P0)
+
+    def converges(self, params: Params, method: str, step_s: float,
+                  P0: Float[Array, "Nb Nz Nz"]) -> str | None:
+        """The one convergence check: ``None`` when the covariance of a regular recording with
+        time step ``step_s``, started at ``P0``, has converged after the head (its relative
+        change over the next step at most ``tol``), else why not."""
+        dtype = P0.dtype
+        n = self.head_rows(dtype)
+        P_n, P_next = _head_covariance(params, method, P0, jnp.asarray(step_s, dtype), n)
+        change = float(relative_change(P_n, P_next))
+        tol = self.tol(dtype)
+        if not change <= tol:
+            return (f"the covariance has not converged after {n} rows (relative change "
+                    f"{change:.1e}, tolerance {tol:.0e})")
+        return None
+
+    def run(self, params: Params, series: SensorSeries, method: str, state: FilterState
+            ) -> tuple[FilterState, Estimate]:
+        dtype = state.z.dtype
+        n_head = self.head_rows(dtype)
+        st = structure(params.robot, method)
+        series = jax.tree_util.tree_map(lambda x: jnp.asarray(x).astype(dtype), series)
+        T = series.dt.shape[1]
+        # Trial 0's time steps, masks and noise stand for every trial's (a regular batch).
+        trial0 = jax.tree_util.tree_map(lambda x: x[0, : n_head + 1], series)
+        rows, _ = series_inputs(params, st, trial0, state.gyro_hold[0])
+        head = jax.tree_util.tree_map(lambda x: x[:n_head], rows)
+        P_head, (Ps, As, Grs, Ghs) = covariance_phase(params, st, state.P[0], head)
+        last = jax.tree_util.tree_map(lambda x: x[n_head], rows)
+        P_ss, A, Gr, Gh = step_maps(params, st, P_head, last)
+        zeros = jnp.zeros(P_ss.shape[:2], dtype)
+        std_head = jax.vmap(lambda Pk: block_estimate(st, zeros, Pk).angle_std)(Ps)
+        std_tail = block_estimate(st, zeros, P_ss).angle_std
+        angles, bias, z = self._mean(params, st, series, state.z, state.gyro_hold,
+                                     (A, Gr, Gh), (As, Grs, Ghs))
+        std = jnp.concatenate([std_head, jnp.broadcast_to(std_tail, (T - n_head,)
+                                                          + std_tail.shape)])
+        est = Estimate(angles, jnp.broadcast_to(std, angles.shape), bias)
+        held = jax.vmap(last_finite)(series.gyro, state.gyro_hold)
+        return FilterState(z, jnp.broadcast_to(P_ss, state.P.shape), held), est
+
+    def _mean(self, params: Params, st: Structure, series: SensorSeries,
+              z0: Float[Array, "B Nb Nz"], hold0: Float[Array, "B G"], maps, head_maps
+              ) -> tuple[Float[Array, "B T K"], Float[Array, "B T K"], Float[Array, "B Nb Nz"]]:
+        """The mean over a batch of trials: the head rows' own maps ``head_maps = (As, Grs,
+        Ghs)`` (a leading row axis), then the converged map ``maps = (A, Gr, Gh)``.
+
+        Row ``k``: ``z_k = A z_{k-1} + g_{k-1}[used] Wg + hall_angle(V_k) Wh`` (``Wg, Wh`` from
+        ``input_weights``). The head is a scan of its rows, every trial at once (trials
+        innermost: chunk operators would need building per row, which costs more than these
+        rows). The converged rows go as whole chunks (``chunk_rows``), then the last 1 to
+        ``chunk_rows`` rows one by one, which gives the final state. Returns ``(angles,
+        biases, z_last)``."""
+        dtype = z0.dtype
+        robot = params.robot
+        Jr, Jh = reading_maps(params, st, dtype)
+        used = tuple(int(u) for u in robot.used_gyro_index)
+        n_trials, nb, nz = z0.shape
+        q = nb * nz
+        T = series.dt.shape[1]
+        K = len(st.block_of)
+        L = self.chunk_rows
+        Gu = len(used)
+        out_map = output_map(st)
+        out_map_j = jnp.asarray(out_map, dtype)
+        coeffs = params.hall_coeffs
+
+        def readings(first, n):  # rows first .. first + n: (B, n, I), used gyro columns first
+            return raw_readings(coeffs, series.gyro, series.hall_v, used, first, n)
+
+        def write(outs, y, first):  # y (B, n, 2K): angles then biases
+            return tuple(jax.lax.dynamic_update_slice_in_dim(o, y[..., k * K:(k + 1) * K],
+                                                             first, axis=1)
+                         for k, o in enumerate(outs))
+
+        def entering(A_k, Wg_k, z, g):  # the prediction entering a row: (B, Nq)
+            return (jnp.einsum("pab,Bpb->Bpa", A_k, z)
+                    + jnp.einsum("Bg,gpa->Bpa", g, Wg_k)).reshape(n_trials, q)
+
+        A, Gr, Gh = maps
+        Wg, Wh = input_weights(Gr, Gh, Jr, Jh)
+        out = jnp.zeros((n_trials, T, K), dtype)
+        outs = (out, out)
+        As = head_maps[0]
+        Wgs, Whs = input_weights(head_maps[1], head_maps[2], Jr, Jh)
+        n_head = As.shape[0]
+        x = jnp.moveaxis(readings(0, n_head), 0, -1)  # (n_head, I, B)
+        g = jnp.concatenate([hold0[:, list(used)].T[None], x[:-1, :Gu]])  # previous rates
+        U = (jnp.einsum("kfB,kfpa->kpaB", g, Wgs)
+             + jnp.einsum("kfB,kfpa->kpaB", x[:, Gu:], Whs))  # (n_head, Nb, Nz, B)
+        Z = row_scan(As, U, jnp.moveaxis(z0, 0, -1))
+        outs = write(outs, jnp.einsum("kpaB,opa->Bko", Z, out_map_j), 0)
+        z, g_prev = jnp.moveaxis(Z[-1], -1, 0), x[-1, :Gu].T
+        s = entering(A, Wg, z, g_prev)
+        # The converged rows: whole chunks, then the last 1 .. L rows one by one.
+        first = n_head
+        n_chunks = (T - first - 1) // L
+        GS, E, Phi = chunk_operator(A, Wg, Wh, out_map, L)
+        if n_chunks:
+            plan = ChunkPlan(start=first, n_chunks=n_chunks, chunk_rows=L,
+                             block_rows=self._block_rows(n_trials), used=used, n_angles=K,
+                             carry_group=self.carry_group, carry_scan=self.carry_scan)
+            outs, s = chunk_rows(plan, GS, E, Phi, s, coeffs, series.gyro, series.hall_v, outs)
+            first = first + n_chunks * L
+        x = readings(first, T - first)
+        z = s.reshape(n_trials, nb, nz) + jnp.einsum("Bm,mpa->Bpa", x[:, 0, Gu:], Wh)
+        zs = [z]
+        for k in range(1, T - first):
+            z = entering(A, Wg, z, x[:, k - 1, :Gu]).reshape(n_trials, nb, nz) + jnp.einsum(
+                "Bm,mpa->Bpa", x[:, k, Gu:], Wh)
+            zs.append(z)
+        outs = write(outs, jnp.einsum("kBpa,opa->Bko", jnp.stack(zs), out_map_j), first)
+        return outs[0], outs[1], z
+
+    def _block_rows(self, n_trials: int) -> int:
+        """Rows per block of the converged rows' pass, for ``n_trials`` trials: a power of two,
+        at least 256 (``mean_block`` trial-rows)."""
+        return max(256, 1 << int(np.log2(max(self.mean_block // n_trials, 1))))
+
+
+@eqx.filter_jit
+def _head_covariance(params: Params, method: str, P0: Float[Array, "Nb Nz Nz"],
+                     step_s: Float[Array, ""], n: int
+                     ) -> tuple[Float[Array, "Nb Nz Nz"], Float[Array, "Nb Nz Nz"]]:
+    """The covariance of a regular recording with time step ``step_s`` after ``n`` rows and
+    after ``n + 1`` (the first row has ``dt = 0``, as every recording's), started at ``P0``:
+    the same block updates as every path's (``block_update``), with every reading present."""
+    st = structure(params.robot, method)
+    dtype = P0.dtype
+    robot = params.robot
+    series = SensorSeries(jnp.full(n + 1, step_s, dtype).at[0].set(0.0),
+                          jnp.zeros((n + 1, 3 * robot.n_links), dtype),
+                          jnp.zeros((n + 1, robot.n_hall), dtype))
+    rows, _ = series_inputs(params, st, series, jnp.zeros(3 * robot.n_links, dtype))
+    zero = jnp.zeros(st.n_z, dtype)
+
+    def body(P, row):
+        dt, rates, (alpha, beta, gamma), hb, rb, vb = row
+        P = jax.vmap(lambda *a: block_update(st, zero, *a, dt)[1])(
+            P, rates, alpha, beta, gamma, hb, rb, vb)
+        return P, None
+
+    P_n, _ = jax.lax.scan(body, P0, jax.tree_util.tree_map(lambda x: x[:n], rows))
+    P_next, _ = body(P_n, jax.tree_util.tree_map(lambda x: x[n], rows))
+    return P_n, P_next

@@ -1,0 +1,368 @@
+"""``StreamingFilter``: the batch filter's ``step``, one packet at a time, compiled once, with
+the steady path's converged map on the host once a regular stream has converged."""
+
+from __future__ import annotations
+
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._hall import hall_exponentials
+from .._kernel import FilterState, SensorSeries, check_method, estimated, init_state, step
+from .._model import structure
+from .._params import Params
+from .._paths import STEP_TOL_S, Steady, converged_map, readings_present, relative_change
+from ._packets import USED, Packet
+
+#: Compiled once per parameter layout (``StreamingFilter.warmup`` compiles it up front).
+_converged_map = eqx.filter_jit(converged_map)
+
+
+class _HostMap:
+    """The converged filter as one NumPy float64 matrix, for packets on the host.
+
+    Once the covariance has converged (constant time step, every reading present), a packet
+    changes the block states ``z`` by the affine map of ``_paths.converged_map``; with the
+    Hall model's two exponentials as inputs (``theta = w1 e^(k1 V) + w2 e^(k2 V)``, Eq. 1 as
+    ``_hall.hall_exponentials`` writes it) the whole step is one product ``M x`` for
+    ``x = [z, (scratch), g_prev, e^(k1 V), e^(k2 V), g]``,
+    giving the new ``z``, the angles and a check row (the sum of every input, finite exactly
+    when every reading is). Two buffers take turns: the product writes the next packet's
+    ``x`` directly. No jitted call, so no dispatch: a packet costs a few NumPy calls.
+    """
+
+    def __init__(self, params: Params, method: str, P, dt: float):
+        robot = params.robot
+        st = structure(robot, method)
+        P_new, A, Wg, Wh, std = (np.asarray(x, np.float64) for x in _converged_map(
+            params, method, P, jnp.asarray(dt, P.dtype)))
+        self.P, self.std, self.dt = P_new, std, float(dt)
+        nb, nz = A.shape[:2]
+        N, K, M = nb * nz, len(st.block_of), robot.n_hall
+        self.used = robot.used_gyro_index
+        Gu = len(self.used)
+        (w1, w2), (k1, k2) = hall_exponentials(*(np.asarray(x, np.float64)
+                                                 for x in params.hall_coeffs))
+        Az = np.zeros((N, N))
+        for p in range(nb):
+            Az[p * nz:(p + 1) * nz, p * nz:(p + 1) * nz] = A[p]
+        Wh = Wh.reshape(M, N).T
+        # Columns: z | scratch (the previous angles and check, weight 0) | g_prev | e^(k1 V) |
+        # e^(k2 V) | g (weight 0 but in the check).
+        Mz = np.concatenate([Az, np.zeros((N, K + 1)), Wg.reshape(Gu, N).T, Wh * w1, Wh * w2,
+                             np.zeros((N, Gu))], axis=1)
+        Tang = np.zeros((K, N))  # angles from z: angle k is row slot_of[k] of T z in its block
+        for k, (p, i) in enumerate(zip(st.block_of, st.slot_of)):
+            Tang[k, p * nz:(p + 1) * nz] = st.T[i]
+        check = np.ones((1, Mz.shape[1]))
+        check[0, N:N + K + 1] = 0.0
+        self.M = np.ascontiguousarray(np.vstack([Mz, Tang @ Mz, check]))
+        self.k1, self.k2 = k1, k2  # exponents per volt
+        self.N, self.K, self.nz, self.nb = N, K, nz, nb
+        g0 = N + K + 1
+        e0 = g0 + Gu
+
+        def views(buf):  # (x, the product's target, g_prev, both exponentials, each, g)
+            return (buf, buf[:g0], buf[g0:e0], buf[e0:e0 + 2 * M], buf[e0:e0 + M],
+                    buf[e0 + M:e0 + 2 * M], buf[e0 + 2 * M:])
+
+        self._views = [views(np.zeros(self.M.shape[1])), views(np.zeros(self.M.shape[1]))]
+        self._cur = 0
+
+    def start(self, z: np.ndarray, gyro_prev: np.ndarray) -> None:
+        x = self._views[self._cur]
+        x[0][: self.N] = z.ravel()
+        x[2][:] = gyro_prev[self.used]
+
+    def step(self, dt: float, gyro: np.ndarray, hall_v: np.ndarray) -> np.ndarray | None:
+        """The angles after this packet, or None (state untouched) when the packet is not one
+        the converged map describes: another time step, or a reading missing or absurd."""
+        if abs(dt - self.dt) > STEP_TOL_S:
+            return None
+        x, _, _, e, eb, ed, g = self._views[self._cur]
+        nxt = self._views[1 - self._cur]
+        np.multiply(self.k1, hall_v, out=eb)
+        np.multiply(self.k2, hall_v, out=ed)
+        np.exp(e, out=e)
+        g[:] = gyro[self.used]
+        out = np.dot(self.M, x, out=nxt[1])
+        if not math.isfinite(out[-1]):
+            return None
+        nxt[2][:] = g
+        self._cur ^= 1
+        return out[self.N:self.N + self.K]
+
+    def z(self) -> np.ndarray:
+        return self._views[self._cur][0][: self.N].reshape(self.nb, self.nz).copy()
+
+    def gyro_prev(self) -> np.ndarray:
+        return self._views[self._cur][2].copy()
+
+
+#: Packets between two checks of the covariance for the host path.
+HOST_CHECK_EVERY = 64
+
+
+class StreamingFilter:
+    """The batch filter's ``step``, one packet at a time, compiled once.
+
+    Args:
+        params: filter parameters (their dtype sets the precision).
+        method: one of ``METHODS``.
+        gap_s: a time step longer than this is a gap (status ``gap``).
+        on_gap: ``"predict"`` (step across the gap: the covariance grows with it) or
+            ``"restart"`` (start again from the initial state at this packet).
+        max_predict_s: a gap longer than this restarts even with ``on_gap="predict"`` (as
+            does a gap whose prediction overflows).
+        host_path: allow the host path (below).
+        steady: the ``Steady`` path whose constants the host path follows (its head length
+            and convergence tolerance).
+
+    The state stays on the device between packets; per packet, one array of readings goes in
+    and one array of estimates comes out. On CPU, Python's dispatch of the jitted call
+    dominates the latency: ``low_latency()`` turns off JAX's async dispatch, which the
+    ``kckf stream`` command does (see benchmarks/README.md).
+
+    **Host path** (``host_path=True``, the KCKF with the constant Hall noise model): once the
+    packets arrive at a constant time step with every reading and the covariance has
+    converged (after ``steady.head_rows`` such packets, checked every ``HOST_CHECK_EVERY``
+    with the steady path's own convergence measure and tolerance), the filter is the steady
+    path's affine map (``_paths.converged_map``)
+    and each packet is one NumPy product on the host, with no jitted call (``on_host``). Any
+    other packet (another time step, a missing or masked reading, a gap) hands the state back
+    to the device step for that packet, and the watch starts again. The estimates are the
+    device step's to rounding.
+
+    Example:
+        >>> sf = StreamingFilter(Params.paper_defaults(Robot.from_spec("x")))
+        >>> sf.push(PacketParser(sf.robot).parse(b'{"t": 0.0, "hall1_x_l": 1.3}'))["status"]
+        'ok'
+    """
+
+    def __init__(self, params: Params, method: str = "kckf", *, gap_s: float = 0.5,
+                 on_gap: str = "predict", max_predict_s: float = 3600.0,
+                 host_path: bool = True, steady: Steady = Steady()):
+        check_method(method)
+        if on_gap not in ("predict", "restart"):
+            raise ValueError(f"on_gap must be 'predict' or 'restart', got {on_gap!r}")
+        if not gap_s > 0:
+            raise ValueError(f"gap_s must be positive, got {gap_s}")
+        self.params, self.method, self.robot = params, method, params.robot
+        self.gap_s, self.on_gap, self.max_predict_s = float(gap_s), on_gap, float(max_predict_s)
+        self.dtype = params.log_q.dtype
+        self._G, self._M = 3 * self.robot.n_links, self.robot.n_hall
+        self._K = self.robot.n_angles
+        self.names = self.robot.angle_names
+        self._estimated = estimated(self.robot, method)
+        self._all_estimated = bool(self._estimated.all())
+        self._fn, self._flatten, self._unflatten = _compiled_step(params, method)
+        self._x = np.empty(1 + self._G + self._M, dtype=self.dtype)
+        self._initial = jax.device_put(self._flatten(init_state(params, method)))
+        self._host_ok = host_path and steady.model_reason(params, method) is None
+        self._used = self.robot.used_gyro_index
+        self._tol = steady.tol(self.dtype)
+        # As in the batch steady path: at least its head of regular rows before switching.
+        self._min_regular = steady.head_rows(self.dtype)
+        self.reset()
+
+    def reset(self) -> None:
+        """Back to the initial state (before the first packet)."""
+        self._state = self._initial
+        self.t_prev: float | None = None
+        self._host: _HostMap | None = None
+        self._regular, self._last_dt, self._P_check = 0, None, None
+
+    def warmup(self) -> None:
+        """Compile the step (and the host path's map; call before the first real packet),
+        then reset."""
+        self._x[:] = 0.0
+        jax.block_until_ready(self._fn(self._state, self._x))
+        if self._host_ok:
+            _HostMap(self.params, self.method, self._unflatten(self._state).P, 0.01)
+        self.reset()
+
+    @property
+    def host_after(self) -> int:
+        """Regular complete packets after which the host path has engaged, if the covariance
+        has converged by then (the steady path's head, then two checks)."""
+        return max(HOST_CHECK_EVERY, self._min_regular) + 2 * HOST_CHECK_EVERY
+
+    @property
+    def on_host(self) -> bool:
+        """Whether packets currently take the host path (see the class docstring)."""
+        return self._host is not None
+
+    @property
+    def state(self):
+        """The current ``FilterState`` (a copy assembled from the device vector, or from the
+        host path's state)."""
+        if self._host is not None:
+            return self._host_state()
+        return self._unflatten(self._state)
+
+    def _host_state(self) -> FilterState:
+        host = self._host
+        hold = self._hold_host.copy()
+        hold[self._used] = host.gyro_prev()
+        return FilterState(jnp.asarray(host.z(), self.dtype), jnp.asarray(host.P, self.dtype),
+                           jnp.asarray(hold, self.dtype))
+
+    def _leave_host(self) -> None:
+        self._state = jax.device_put(self._flatten(self._host_state()))
+        self._host = None
+        self._regular, self._last_dt, self._P_check = 0, None, None
+
+    def _watch(self, dt: float, pkt: Packet) -> None:
+        """After a device step: count regular complete packets (the batch paths' regularity
+        check, packet by packet) and, from the steady path's head length on, every
+        ``HOST_CHECK_EVERY`` compare the covariance over one step; once it has converged,
+        switch to the host path."""
+        gyro_ok, hall_ok = readings_present(self.robot, pkt.gyro, pkt.hall_v, np)
+        complete = dt > 0 and bool(gyro_ok) and bool(hall_ok)
+        if complete and self._last_dt is not None and abs(dt - self._last_dt) <= STEP_TOL_S:
+            self._regular += 1
+        else:
+            self._regular, self._P_check = 0, None
+        self._last_dt = dt if complete else None
+        phase = self._regular % HOST_CHECK_EVERY
+        if self._regular < max(HOST_CHECK_EVERY, self._min_regular) or phase > 1:
+            return
+        state = self._unflatten(self._state)
+        P = np.asarray(state.P, np.float64)
+        if phase == 0:
+            self._P_check = P
+            return
+        if self._P_check is None:
+            return
+        if relative_change(self._P_check, P, np) <= self._tol:
+            self._host = _HostMap(self.params, self.method, state.P, dt)
+            self._hold_host = np.asarray(state.gyro_hold, np.float64)
+            self._host.start(np.asarray(state.z, np.float64), self._hold_host)
+
+    def push(self, pkt: Packet) -> dict:
+        """Filter one packet; returns the output record (``t``, angles in rad, ``status``)."""
+        if pkt.status not in USED:
+            return self._record(pkt.t, pkt.status, pkt.note)
+        if self.t_prev is not None and not pkt.t > self.t_prev:
+            return self._record(pkt.t, "out_of_order",
+                                f"t = {pkt.t!r} is not after the previous t = {self.t_prev!r}")
+        status, note, extra = pkt.status, pkt.note, {}
+        dt = 0.0 if self.t_prev is None else pkt.t - self.t_prev  # float64 on the host
+        if dt > self.gap_s:
+            status = "gap"
+            predict = self.on_gap == "predict" and dt <= self.max_predict_s
+            extra = {"gap": "predict" if predict else "restart", "gap_s": dt}
+            if not predict:
+                self.reset()
+                dt = 0.0
+        out = self._run(dt, pkt)
+        if out is None and extra.get("gap") == "predict":
+            # Predicting across this gap overflowed: start again at this packet instead.
+            self.reset()
+            extra["gap"] = "restart"
+            out = self._run(0.0, pkt)
+        if out is None:
+            return self._record(pkt.t, "rejected", "the update was not finite; state kept")
+        self.t_prev = pkt.t
+        rec = self._record(pkt.t, status, note, out)
+        rec.update(extra)
+        return rec
+
+    def _run(self, dt: float, pkt: Packet) -> np.ndarray | None:
+        """One step: on the host path when it applies, else on the device; the new state is
+        kept only when it is finite."""
+        if self._host is not None:
+            angles = self._host.step(dt, pkt.gyro, pkt.hall_v)
+            if angles is not None:
+                return angles
+            self._leave_host()
+        x = self._x
+        x[0] = dt
+        x[1:1 + self._G] = pkt.gyro
+        x[1 + self._G:] = pkt.hall_v
+        state, out = self._fn(self._state, x)
+        out = np.asarray(out)
+        if out[-1] < 0.5:
+            return None
+        self._state = state
+        if self._host_ok:
+            self._watch(dt, pkt)
+        return out[: self._K]
+
+    def _record(self, t, status, note="", angles=None) -> dict:
+        rec: dict = {"t": t}
+        if angles is not None:
+            values = angles.tolist()
+            if self._all_estimated:
+                rec.update(zip(self.names, values))
+            else:
+                rec.update((n, a) for n, a, e in zip(self.names, values, self._estimated) if e)
+        rec["status"] = status
+        if note:
+            rec["note"] = note
+        return rec
+
+
+def stream_step_fn(params: Params, method: str):
+    """The pure per-packet function ``(s, x) -> (s, [angles, std, ok])`` over ``step``.
+
+    ``s`` is the whole filter state flattened into one vector and ``x = [dt, gyro (G),
+    hall_v (M)]``: two arrays in, two out (dispatch cost on CPU grows with every argument). A
+    non-finite result (impossible for finite readings, but the stream must survive anything)
+    leaves the state as it was and reports ``ok = 0``. Returns ``(fn, flatten, unflatten)``;
+    ``StreamingFilter`` jits it, ``kckf export`` serialises it.
+    """
+    G = 3 * params.robot.n_links
+    leaves, treedef = jax.tree_util.tree_flatten(init_state(params, method))
+    shapes = [leaf.shape for leaf in leaves]
+    cuts = np.cumsum([int(np.prod(sh)) for sh in shapes])[:-1].tolist()
+
+    def unflatten(flat):
+        parts = jnp.split(flat, cuts)
+        return jax.tree_util.tree_unflatten(treedef, [p.reshape(sh) for p, sh in
+                                                      zip(parts, shapes)])
+
+    def flatten(state):
+        return jnp.concatenate([jnp.ravel(leaf) for leaf in jax.tree_util.tree_leaves(state)])
+
+    def fn(flat, x, p=params):
+        state = unflatten(flat)
+        inputs = SensorSeries(x[0], x[1:1 + G], x[1 + G:])
+        new, est = step(p, state, inputs, method)
+        new_flat = flatten(new)
+        ok = jnp.all(jnp.isfinite(new_flat))
+        out = jnp.concatenate([est.angles, est.angle_std, ok[None].astype(x.dtype)])
+        return jnp.where(ok, new_flat, flat), out
+
+    return fn, flatten, unflatten
+
+
+def _compiled_step(params: Params, method: str):
+    """``stream_step_fn`` jitted; traced once (a retrace raises, via
+    ``eqx.debug.assert_max_traces``)."""
+    fn, flatten, unflatten = stream_step_fn(params, method)
+    return jax.jit(eqx.debug.assert_max_traces(lambda flat, x: fn(flat, x), max_traces=1)), \
+        flatten, unflatten
+
+
+LOW_LATENCY_XLA_FLAGS = "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"
+
+
+def low_latency() -> None:
+    """Settings for one-packet-at-a-time filtering on a CPU. Global; call before filtering.
+
+    Turns off JAX's asynchronous CPU dispatch (a call per packet then costs about a third,
+    ``../shared/notes/jax-cpu-hazards.md`` item 2) and, if no computation has run yet, keeps
+    XLA's kernels on the calling thread (``LOW_LATENCY_XLA_FLAGS``; they are tiny, and a
+    hand-off to a thread pool costs more than it saves)."""
+    import os
+
+    jax.config.update("jax_cpu_enable_async_dispatch", False)
+    flags = os.environ.get("XLA_FLAGS", "")
+    if "intra_op_parallelism_threads" not in flags:
+        os.environ["XLA_FLAGS"] = (flags + " " + LOW_LATENCY_XLA_FLAGS).strip()
+
+

@@ -1,0 +1,128 @@
+"""Sensor packets: what a stream sends, parsed and validated, never raising.
+
+A packet is one UTF-8 JSON object keyed by ``sensors.csv`` column names (``t`` required; a
+missing key or ``null`` is a missing reading). ``PacketParser`` turns bytes into a ``Packet``
+with a ``status`` (``STATUSES``); a reading it cannot use is treated as missing and named in
+the packet's ``note``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from .._robot import Robot
+
+#: Every ``status`` an output line can carry. Used packets: ``ok``; ``masked`` (some readings
+#: were unusable and treated as missing, ``note`` says which); ``gap`` (time jumped by more
+#: than the gap limit; ``gap`` says whether the filter predicted across it or restarted).
+#: Skipped packets (the state is unchanged): ``malformed`` (not UTF-8 JSON, not an object),
+#: ``oversized``, ``missing_t``, ``bad_t`` (not a finite number), ``out_of_order`` (``t`` not
+#: after the previous packet's), ``rejected`` (the update was not finite; never seen in tests).
+STATUSES = ("ok", "masked", "gap", "malformed", "oversized", "missing_t", "bad_t",
+            "out_of_order", "rejected")
+USED = ("ok", "masked", "gap")
+#: Plausibility limits of a reading: beyond them it is treated as missing (``masked``).
+MAX_RATE_RAD_S = 100.0  # the LSM6DSO's widest range is 2000 dps = 35 rad/s
+HALL_V_RANGE = (-1.0, 10.0)
+MAX_PACKET_BYTES = 8192
+
+
+@dataclass
+class Packet:
+    """One parsed packet: time (s, float64), readings (NaN = missing), status, note."""
+
+    t: float | None
+    gyro: np.ndarray
+    hall_v: np.ndarray
+    status: str
+    note: str = ""
+
+
+class PacketParser:
+    """Turns bytes into ``Packet``s for one robot; never raises.
+
+    Example:
+        >>> parser = PacketParser(Robot.from_spec("x"))
+        >>> parser.parse(b'{"t": 0.01, "gyro1_x": 0.1, "hall1_x_l": 1.3}').status
+        'ok'
+        >>> parser.parse(b"garbage").status
+        'malformed'
+    """
+
+    def __init__(self, robot: Robot, max_bytes: int = MAX_PACKET_BYTES):
+        self.robot = robot
+        self.max_bytes = max_bytes
+        self._names = robot.gyro_names + robot.hall_names
+        self._slots = set(self._names)
+        self._G, self._M = len(robot.gyro_names), robot.n_hall
+        # Plausible range of each reading: |rate| <= MAX_RATE_RAD_S, V within HALL_V_RANGE.
+        self._lo = np.r_[np.full(self._G, -MAX_RATE_RAD_S), np.full(self._M, HALL_V_RANGE[0])]
+        self._hi = np.r_[np.full(self._G, MAX_RATE_RAD_S), np.full(self._M, HALL_V_RANGE[1])]
+
+    def empty(self, status: str, note: str = "", t: float | None = None) -> Packet:
+        return Packet(t, np.full(self._G, np.nan), np.full(self._M, np.nan), status, note)
+
+    def parse(self, data: bytes | str) -> Packet:
+        try:
+            return self._parse(data)
+        except Exception as exc:  # a parser bug must not stop the stream either
+            return self.empty("malformed", f"unparseable packet ({type(exc).__name__})")
+
+    def _parse(self, data: bytes | str) -> Packet:
+        if len(data) > self.max_bytes:
+            return self.empty("oversized", f"{len(data)} bytes, limit {self.max_bytes}")
+        try:
+            text = data.decode("utf-8") if isinstance(data, bytes | bytearray) else data
+            obj = json.loads(text)
+        except (UnicodeDecodeError, ValueError, RecursionError):
+            return self.empty("malformed", "not a UTF-8 JSON object")
+        if not isinstance(obj, dict):
+            return self.empty("malformed", f"a JSON {type(obj).__name__}, not an object")
+        t = obj.get("t")
+        if t is None:
+            return self.empty("missing_t", "no 't'")
+        if isinstance(t, bool) or not isinstance(t, int | float) or not math.isfinite(t):
+            return self.empty("bad_t", f"t = {str(t)[:40]!r} is not a finite number")
+        pkt = self.empty("ok", t=float(t))
+        values = [obj.get(name) for name in self._names]
+        try:  # fast path: numbers and nulls (None becomes NaN)
+            if any(type(v) is bool for v in values):
+                raise TypeError
+            arr = np.array(values, dtype=np.float64)
+            problems = []
+        except (TypeError, ValueError, OverflowError):
+            arr, problems = self._slow_values(values)
+        bad = ~(np.isnan(arr) | ((arr >= self._lo) & (arr <= self._hi)))
+        if bad.any():
+            problems += [f"{self._names[i]} = {arr[i]} out of range" for i in np.flatnonzero(bad)]
+            arr[bad] = np.nan
+        pkt.gyro[:] = arr[: self._G]
+        pkt.hall_v[:] = arr[self._G:]
+        notes = []
+        if problems:
+            pkt.status = "masked"
+            notes.append("treated as missing: " + "; ".join(problems[:4]))
+        if len(obj) - 1 > sum(1 for name in self._names if name in obj):
+            unknown = [k for k in obj if k != "t" and k not in self._slots]
+            notes.append("ignored unknown key(s) " + ", ".join(repr(k[:30]) for k in unknown[:4]))
+        pkt.note = " | ".join(notes)
+        return pkt
+
+    def _slow_values(self, values: list) -> tuple[np.ndarray, list[str]]:
+        arr = np.full(len(values), np.nan)
+        problems = []
+        for i, v in enumerate(values):
+            if v is None:
+                continue
+            if isinstance(v, bool) or not isinstance(v, int | float):
+                problems.append(f"{self._names[i]} is not a number")
+                continue
+            try:
+                arr[i] = float(v)
+            except OverflowError:
+                problems.append(f"{self._names[i]} is too large")
+        return arr, problems

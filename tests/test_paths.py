@@ -1,0 +1,229 @@
+"""The paths agree with the sequential filter (1e-8 rad in float64), and ``Auto`` picks the
+fastest that applies, with reasons.
+
+Most tests use a ``Steady`` with small constants (its fields) and fast-converging noise, so
+that the same properties are checked on a few hundred rows; one checks the defaults at full
+size.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from kckf_jax import (
+    Auto,
+    Parallel,
+    Params,
+    Robot,
+    SensorSeries,
+    Sequential,
+    Steady,
+    choose_path,
+    filter_batch,
+    pad_series,
+    run_filter,
+    simulate,
+)
+
+DEG = np.pi / 180
+#: Small constants: the head is 256 / 512 rows, chunk groups nest several levels deep, and a
+#: block holds a few chunks, so every branch of the steady path runs on ~1,000 rows.
+SMALL = Steady(min_rows=600, head_rows_float32=256, head_rows_float64=512, carry_scan=3,
+               carry_group=4, mean_block=512)
+T_SMALL = 1037  # a partial last chunk
+
+
+def fast_params(robot, s=None, dtype=jnp.float64, **kw):
+    """Noise that makes the covariance converge within ~500 rows at 100 Hz."""
+    return Params.from_physical(robot, q=1e4 * DEG**2, hall_models=s.hall_models if s else None,
+                                dtype=dtype, **kw)
+
+
+def regular(robot, seed, T, dtype=jnp.float64, kind="cyclic"):
+    """A session with an exactly constant time step and no missing reading."""
+    s = simulate(robot, kind, seed=seed, duration_s=T / 100.0)
+    dt = np.r_[0.0, np.full(T - 1, 0.01)]
+    return s, SensorSeries(jnp.asarray(dt, dtype), jnp.asarray(s.gyro, dtype),
+                           jnp.asarray(s.hall_v, dtype))
+
+
+def stack(trials):
+    return jax.tree_util.tree_map(lambda *x: jnp.stack(x), *trials)
+
+
+def close(a, b, atol, rtol=0.0):
+    for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)):
+        np.testing.assert_allclose(np.asarray(x), np.asarray(y), atol=atol, rtol=rtol)
+
+
+@pytest.mark.parametrize("spec", ["x,y,x,y", "xyz,xyz,xyz,xyz", "xz,y"])
+def test_steady_and_parallel_equal_sequential_float64(spec):
+    robot = Robot.from_spec(spec)
+    s, series = regular(robot, 1, T_SMALL)
+    params = fast_params(robot, s)
+    ref_final, ref = run_filter(params, series, "kckf", path="sequential")
+    assert ref.path == "sequential"
+    for path in (SMALL, Parallel()):
+        final, est = run_filter(params, series, "kckf", path=path)
+        assert est.path == path.name
+        assert not np.array_equal(np.asarray(est.angles), np.asarray(ref.angles))
+        close((est.angles, est.bias, final.z), (ref.angles, ref.bias, ref_final.z), 1e-8)
+        close((est.angle_std, final.P), (ref.angle_std, ref_final.P), 1e-10, 1e-6)
+        np.testing.assert_array_equal(final.gyro_hold, ref_final.gyro_hold)
+    # The standard KF: its torso variance grows without bound, so the steady path never
+    # applies (Auto passes it over, an explicit request says why); the parallel path does.
+    choice = choose_path(params, series, "kf", Auto(steady=SMALL))
+    assert choice.path.name == "sequential" and "unobservable" in choice.passed_over["steady"]
+    with pytest.raises(ValueError, match="path='steady' does not apply: the standard KF"):
+        run_filter(params, series, "kf", path=SMALL)
+    _, ref = run_filter(params, series, "kf", path="sequential")
+    _, est = run_filter(params, series, "kf", path="parallel")
+    close(est.angles, ref.angles, 1e-8)
+
+
+def test_default_steady_at_full_size_float64():
+    """The defaults on the paper's parameters: ``auto`` takes the steady path past 4,096 rows
+    and agrees with the sequential filter."""
+    robot = Robot.from_spec("x,y,x,y")
+    s, series = regular(robot, 3, 4096 + 900)
+    params = Params.paper_defaults(robot, s.hall_models, dtype=jnp.float64)
+    assert choose_path(params, series, "kckf") == (Steady(), {})
+    _, ref = run_filter(params, series, "kckf", path="sequential")
+    _, est = run_filter(params, series, "kckf")
+    assert est.path == "steady"
+    close((est.angles, est.bias), (ref.angles, ref.bias), 1e-8)
+
+
+def test_parallel_handles_missing_readings_uneven_steps_and_voltage_noise():
+    robot = Robot.from_spec("x,y,x,y")
+    s = simulate(robot, "human", seed=4, duration_s=6.0, drop_prob=0.05)
+    params = Params.from_physical(robot, hall_models=s.hall_models, hall_noise="voltage",
+                                  dtype=jnp.float64)
+    series = SensorSeries(jnp.asarray(s.dt()), jnp.asarray(s.gyro), jnp.asarray(s.hall_v))
+    choice = choose_path(params, series, "kckf", Auto(steady=SMALL))
+    assert choice.path == Sequential()
+    assert choice.passed_over["steady"].startswith("the voltage noise model")
+    _, ref = run_filter(params, series, "kckf", path="sequential")
+    _, par = run_filter(params, series, "kckf", path="parallel")
+    close(par.angles, ref.angles, 1e-8)
+    with pytest.raises(ValueError, match="does not apply: the voltage noise model"):
+        run_filter(params, series, "kckf", path="steady")
+
+
+def test_reasons_for_every_kind_of_irregular_data():
+    robot = Robot.from_spec("x,y")
+    _, series = regular(robot, 2, T_SMALL)
+    params = fast_params(robot)
+    auto = Auto(steady=SMALL)
+
+    def why(x, p=params):
+        return choose_path(p, x, "kckf", auto).passed_over.get("steady")
+
+    assert why(series) is None and choose_path(params, series, "kckf", auto).path == SMALL
+    hall = np.asarray(series.hall_v).copy()
+    hall[T_SMALL - 100, 1] = np.nan  # among the converged rows
+    assert why(SensorSeries(series.dt, series.gyro, hall)) == "a Hall reading is missing"
+    gyro = np.asarray(series.gyro).copy()
+    gyro[50, int(robot.used_gyro_index[0])] = np.nan
+    assert why(SensorSeries(series.dt, gyro, series.hall_v)) == "a gyro reading is missing"
+    unused = np.asarray(series.gyro).copy()
+    unused[:, 2] = np.nan  # gyro1_z: the planar robot never reads it
+    assert why(SensorSeries(series.dt, unused, series.hall_v)) is None
+    dt = np.asarray(series.dt).copy()
+    dt[300] += 1e-4
+    assert why(SensorSeries(dt, series.gyro, series.hall_v)) == "the time step is not constant"
+    short = jax.tree_util.tree_map(lambda x: x[:500], series)
+    assert why(short) == "500 rows, not more than 600"
+    slow = Params.from_physical(robot, q=1e-16, p0_bias=0.5, dtype=jnp.float64)
+    assert why(series, slow).startswith("the covariance has not converged after 512 rows")
+    with pytest.raises(ValueError, match="has not converged"):
+        run_filter(slow, series, "kckf", path=SMALL)
+    # Each trial is regular, but the steps differ: one shared covariance would be wrong.
+    b = SensorSeries(series.dt * 2, series.gyro, series.hall_v)
+    assert why(stack([series, b])) == "the time step is not one constant shared by every trial"
+    # Under a transformation the data cannot be checked: the sequential path, and it says so.
+    got = {}
+
+    def traced(x):
+        choice = choose_path(params, SensorSeries(x, series.gyro, series.hall_v), "kckf", auto)
+        got.update(choice.passed_over, path=choice.path.name)
+        return x
+
+    jax.jit(traced)(series.dt)
+    assert got["path"] == "sequential" and "traced" in got["steady"]
+
+
+def test_steady_path_inside_jit_trusts_the_caller():
+    robot = Robot.from_spec("x,y")
+    s, series = regular(robot, 4, T_SMALL)
+    params = fast_params(robot, s)
+    est = jax.jit(lambda x: run_filter(params, x, "kckf", path=SMALL)[1].angles)(series)
+    _, ref = run_filter(params, series, "kckf", path="sequential")
+    close(est, ref.angles, 1e-8)
+
+
+def test_batch_steady_float32_and_float64_with_gradients():
+    """A batch of regular trials: the steady path (one shared covariance phase, several whole
+    blocks and nested chunk groups) equals the sequential filter, in float32 to 1e-4 rad and
+    in float64 to 1e-8, and so do the gradients of a loss of angles and biases with respect
+    to the parameters and to the readings themselves (the hand-written reverse modes' every
+    branch)."""
+    robot = Robot.from_spec("xz,y")
+    trials = [regular(robot, seed, T_SMALL)[1] for seed in (5, 6, 7)]
+    batch = stack(trials)
+    for dtype, tol in ((jnp.float32, 1e-4), (jnp.float64, 1e-8)):
+        params = fast_params(robot, dtype=dtype)
+        b = jax.tree_util.tree_map(lambda x, d=dtype: x.astype(d), batch)
+        assert choose_path(params, b, "kckf", Auto(steady=SMALL)).path == SMALL
+        seq = filter_batch(params, b, "kckf", path="sequential")
+        fast = filter_batch(params, b, "kckf", path=SMALL)
+        assert fast.path == "steady" and not np.array_equal(np.asarray(fast.angles),
+                                                            np.asarray(seq.angles))
+        close((fast.angles, fast.bias), (seq.angles, seq.bias), tol)
+        close(fast.angle_std, seq.angle_std, tol, 1e-5)
+
+    params = fast_params(robot)
+
+    def loss(p, gyro, hall_v, path):
+        est = filter_batch(p, SensorSeries(batch.dt, gyro, hall_v), "kckf", path=path)
+        return jnp.mean(est.angles ** 2) + jnp.mean(jnp.sin(3.0 * est.bias))
+
+    def angles_only(p, path):
+        return jnp.mean(filter_batch(p, batch, "kckf", path=path).angles ** 2)
+
+    for f, args in ((loss, (params, batch.gyro, batch.hall_v)), (angles_only, (params,))):
+        argnums = tuple(range(len(args)))
+        (v_seq, g_seq), (v_fast, g_fast) = (
+            jax.value_and_grad(lambda *a, path=path: f(*a, path), argnums=argnums)(*args)
+            for path in (Sequential(), SMALL))
+        np.testing.assert_allclose(v_fast, v_seq, rtol=1e-9)
+        flat_seq = jax.tree_util.tree_leaves(eqx.filter(g_seq, eqx.is_inexact_array))
+        flat_fast = jax.tree_util.tree_leaves(eqx.filter(g_fast, eqx.is_inexact_array))
+        assert len(flat_fast) == len(flat_seq)
+        for a, b in zip(flat_fast, flat_seq):
+            np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-9 * float(np.abs(b).max() + 1))
+        assert all(np.abs(np.asarray(x)).max() > 0 for x in jax.tree_util.tree_leaves(g_fast[1:]))
+
+
+def test_auto_under_grad_and_padded_batches_take_the_sequential_path():
+    robot = Robot.from_spec("x")
+    rng = np.random.default_rng(0)
+    trials = [SensorSeries(np.full(n, 0.01), rng.normal(size=(n, 6)), rng.uniform(1, 2, (n, 2)))
+              for n in (700, 650)]
+    params = fast_params(robot)
+    batch = pad_series(trials)
+    assert filter_batch(params, batch, "kckf", path=Auto(steady=SMALL)).path == "sequential"
+    assert "time step" in choose_path(params, batch, "kckf", Auto(steady=SMALL)).passed_over[
+        "steady"]
+
+
+def test_unknown_path():
+    robot = Robot.from_spec("x")
+    with pytest.raises(ValueError, match="path must be one of"):
+        run_filter(Params.paper_defaults(robot), regular(robot, 1, 10)[1], path="fast")
+    with pytest.raises(ValueError, match="Steady.head_rows_float64"):
+        Steady(min_rows=100, head_rows_float32=50, head_rows_float64=200)
