@@ -27,8 +27,17 @@ with install_import_hook("kckf_jax", "_typecheck.typechecker"):
         if not _mod.name.endswith(("export_loader", "__main__")):
             importlib.import_module(_mod.name)
 
+import tempfile  # noqa: E402
+
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
+
+# The tests' own subprocesses (the CLI, fits killed and resumed, stream servers) share one
+# persistent compilation cache, so that a program compiled by one is loaded by the next; this
+# process compiles with float64 enabled and keeps its own in-memory cache.
+_CACHE = tempfile.mkdtemp(prefix="kckf-test-jax-cache-")
+os.environ["JAX_COMPILATION_CACHE_DIR"] = _CACHE
+os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"
 
 
 @pytest.fixture
@@ -43,11 +52,17 @@ def rng():
 
 @pytest.fixture(scope="session")
 def demo_results(tmp_path_factory):
-    """``kckf demo`` run once for the whole test session: its results.json and stderr."""
+    """``kckf demo`` run once for the whole test session: its results.json, its output folder
+    (``"_out"``) and what it printed (``"_stdout"``, ``"_stderr"``)."""
+    import contextlib
+    import io
     import json
 
     from kckf_jax.cli import main
 
     out = tmp_path_factory.mktemp("demo")
-    assert main(["demo", "--out", str(out), "--quiet"]) == 0
-    return json.loads((out / "results.json").read_text()) | {"_out": str(out)}
+    stdout, stderr = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(stderr):
+        assert main(["demo", "--out", str(out)]) == 0
+    return json.loads((out / "results.json").read_text()) | {
+        "_out": str(out), "_stdout": stdout.getvalue(), "_stderr": stderr.getvalue()}

@@ -125,7 +125,7 @@ def test_jit_equals_eager():
     rng = np.random.default_rng(9)
     robot = Robot.from_spec("xy,x")
     params = random_params(rng, robot)
-    series = make_series(*random_recording(rng, robot, T=12))
+    series = make_series(*random_recording(rng, robot, T=5))
     _, jitted = run_filter(params, series, "kckf")
     with jax.disable_jit():
         _, eager = run_filter(params, series, "kckf")

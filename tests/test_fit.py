@@ -85,7 +85,7 @@ def test_remat_chunks_give_the_same_loss_and_gradient(small_sessions):
     batch = make_batch(small_sessions, jnp.float64)
     params = initial_params(small_sessions, FitConfig(), jnp.float64)
     out = [eqx.filter_value_and_grad(lambda p, c=c: loss_fn(p, batch, "kckf", c))(params)
-           for c in (None, 17, 100)]
+           for c in (None, 17)]
     for loss, grads in out[1:]:
         assert float(loss) == pytest.approx(float(out[0][0]), rel=1e-12)
         for a, b in zip(jax.tree_util.tree_leaves(grads), jax.tree_util.tree_leaves(out[0][1])):

@@ -8,8 +8,6 @@ import os
 import subprocess
 import sys
 
-import pytest
-
 ROOT = os.path.join(os.path.dirname(__file__), "..")
 
 
@@ -33,10 +31,3 @@ def test_recovery_of_known_parameters(tmp_path):
     for joint, err in res["fused_hall_error_deg"]["fitted"].items():
         assert err < 1.0, (joint, err)
         assert err < 0.5 * res["fused_hall_error_deg"]["paper"][joint]
-
-
-@pytest.mark.parametrize("ds", ["bench", "human"])
-def test_heldout_gain_on_the_sample_data(ds, demo_results):
-    """Fitted KCKF mean RMSE at most 70 % of the paper-default KCKF's on unseen sessions."""
-    methods = demo_results[ds]["methods"]
-    assert methods["kckf_fit"]["mean_rmse_deg"] <= 0.7 * methods["kckf"]["mean_rmse_deg"]

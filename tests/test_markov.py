@@ -176,7 +176,7 @@ def test_mode_is_eq29_and_gated_by_eq30(short_trials):
 # ----------------------------------------------------------------------------- agreement
 def test_jit_equals_eager(short_trials):
     params = MarkovParams.table2(jnp.float64)
-    series = jax.tree_util.tree_map(lambda a: a[:12],
+    series = jax.tree_util.tree_map(lambda a: a[:4],
                                     gait_series(short_trials, jnp.float64, index=1))
     _, jitted = run_markov(params, series, "mkf")
     with jax.disable_jit():
