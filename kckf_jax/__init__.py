@@ -85,5 +85,4 @@ from ._stream import StreamingFilter as StreamingFilter
 from ._stream import low_latency as low_latency
 from ._train import FitInterrupted as FitInterrupted
 from ._train import FitResult as FitResult
-
-__version__ = "0.1.0"
+from ._version import __version__ as __version__

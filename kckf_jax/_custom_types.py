@@ -16,7 +16,9 @@ checking):
 ``Np``    the side of a stored covariance (``Nz`` for the Kalman filters, 0 for baselines)
 ``Nq``    a batch row's flattened block state, ``Nb Nz``
 ``R``     rows handled together (a head, a chunk, a block of rows)
-``C``     chunks of rows; ``I`` readings per row (``Gu + M``); ``O`` outputs per row
+``C``     chunks of rows; ``I`` readings per row (``Gu + M``); ``O`` outputs of a chunk
+          (``L 2K`` for chunks of ``L`` rows); ``Y`` a chunk's readings (``L I``) and
+          ``X`` those and an entering state (``L I + Nq``)
 ========  ==========================================================================
 """
 

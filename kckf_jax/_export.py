@@ -15,6 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._gaps import GapPolicy
 from ._kernel import estimated, init_state
 from ._params import _LEAVES, Params
 from ._stream import stream_step_fn
@@ -22,7 +23,8 @@ from ._stream import stream_step_fn
 MAGIC = b"KCKF-JAXEXPORT/1\n"
 
 
-def export_step(params: Params, path: str, method: str = "kckf", baked: bool = True) -> int:
+def export_step(params: Params, path: str, method: str = "kckf", baked: bool = True,
+                gaps: GapPolicy = GapPolicy()) -> int:
     """Write the per-packet step of ``method`` to ``path``; returns the file size in bytes.
 
     Args:
@@ -32,6 +34,11 @@ def export_step(params: Params, path: str, method: str = "kckf", baked: bool = T
         baked: bake the parameters into the program (default); otherwise the program takes
             the vector of unconstrained parameter leaves as its first input, so new fitted
             parameters can be loaded without exporting again.
+        gaps: the gap policy the loader applies (its defaults; ``kckf stream``'s rule).
+
+    The header also carries the physical limits of the readings (``params.limits``), so the
+    loader reports faulty readings as ``masked`` as ``kckf stream`` does (the exported step
+    itself treats them as missing).
     """
     robot = params.robot
     dtype = params.log_q.dtype
@@ -63,6 +70,9 @@ def export_step(params: Params, path: str, method: str = "kckf", baked: bool = T
         "params_mode": "baked" if baked else "passed",
         "params": None if baked else leaves.tolist(),
         "param_leaves": [[n, k] for n, k in zip(_LEAVES, sizes)],
+        "limits": params.limits.to_meta(),
+        "gaps": {"gap_s": gaps.gap_s, "on_gap": gaps.on_gap,
+                 "max_predict_s": gaps.max_predict_s},
     }
     head = json.dumps(header).encode()
     blob = exported.serialize()

@@ -23,11 +23,12 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
+from ._gaps import GapPolicy
 from ._kernel import SensorSeries, init_state, pad_series
 from ._params import _LEAVES, Params, with_floors
 from ._paths import AbstractPath, Auto, Sequential, Steady, as_path, is_traced
 from ._run import choose_path
-from ._session import Session
+from ._session import Session, split_at_gaps
 from ._train import (
     AbstractLoss,
     FitInterrupted,
@@ -35,6 +36,7 @@ from ._train import (
     TrainConfig,
     train,
 )
+from ._version import __version__
 
 RAD2DEG = 180.0 / math.pi
 #: Leaves that sit in an exponent (Eq. 1's ``b`` and ``d``): smaller Adam steps.
@@ -51,22 +53,27 @@ class Batch(eqx.Module):
 
 
 def make_batch(sessions: Sequence[Session], dtype=None, burn_in_s: float = 0.0,
-               multiple_of: int = 1) -> Batch:
+               multiple_of: int = 1, gaps: GapPolicy = GapPolicy()) -> Batch:
     """Stack ``sessions`` into a ``Batch``; the trial count is padded to ``multiple_of``
     (for sharding) with copies of the first trial that have no truth, so they add nothing to
-    the loss (and keep a regular batch regular)."""
+    the loss (and keep a regular batch regular). A session with a gap where ``gaps``
+    restarts the filter becomes one trial per stretch (``split_at_gaps``), as every command
+    filters it; ``len(trial_sessions(sessions, gaps))`` counts them."""
     if not sessions:
         raise ValueError("no sessions to fit on")
     dtype = dtype or jnp.asarray(0.0).dtype
-    series = [SensorSeries(s.dt(), s.gyro, s.hall_v) for s in sessions]
-    truths = []
     for s in sessions:
         if not s.has_truth:
             raise ValueError(f"{s.path or 'session'}: no motion capture to fit against")
+    pieces = trial_sessions(sessions, gaps)
+    series = [SensorSeries(s.dt(), s.gyro, s.hall_v) for s in pieces]
+    truths = []
+    for s, whole in zip(pieces, _origins(sessions, gaps)):
         tr = s.truth().copy()
         if burn_in_s > 0:
-            tr[s.t - s.t[0] < burn_in_s] = np.nan
+            tr[s.t - whole.t[0] < burn_in_s] = np.nan
         truths.append(tr)
+    sessions = pieces
     T = max(s.n_steps for s in sessions)
     K = sessions[0].robot.n_angles
     n_pad = (-len(sessions)) % multiple_of
@@ -80,6 +87,15 @@ def make_batch(sessions: Sequence[Session], dtype=None, burn_in_s: float = 0.0,
         truth=jnp.asarray(np.where(mask, truth, 0.0), dtype),
         mask=jnp.asarray(mask),
     )
+
+
+def trial_sessions(sessions: Sequence[Session], gaps: GapPolicy = GapPolicy()) -> list[Session]:
+    """The trials of a batch: every session, cut where ``gaps`` restarts the filter."""
+    return [p for s in sessions for p in split_at_gaps(s, gaps)]
+
+
+def _origins(sessions: Sequence[Session], gaps: GapPolicy) -> list[Session]:
+    return [s for s in sessions for _ in split_at_gaps(s, gaps)]
 
 
 #: Above this many trial-steps in one gradient, the scan is checkpointed in chunks: a plain
@@ -265,6 +281,7 @@ def fit(
     resume: bool = False,
     callback: Callable[[dict], None] | None = None,
     pad_trials_to: int | None = None,
+    gaps: GapPolicy = GapPolicy(),
 ) -> FitResult:
     """Fit the filter's parameters to motion capture.
 
@@ -282,6 +299,7 @@ def fit(
         callback: called after every step with ``{"step", "loss_deg", "val_deg"}``.
         pad_trials_to: pad the trial count to a multiple of this (with empty trials), so fits
             on data sets of different sizes can share one compiled training step.
+        gaps: what a gap in the sensor rows does (``GapPolicy``; as every command).
 
     Returns:
         A ``FitResult`` with the best parameters found.
@@ -289,8 +307,8 @@ def fit(
     t0 = time.perf_counter()
     n_dev = jax.device_count()
     multiple = math.lcm(n_dev, pad_trials_to or 1)
-    batch = shard_batch(make_batch(sessions, dtype, config.burn_in_s, multiple_of=multiple))
-    val = (shard_batch(make_batch(val_sessions, dtype, config.burn_in_s, multiple_of=multiple))
+    batch = shard_batch(make_batch(sessions, dtype, config.burn_in_s, multiple, gaps))
+    val = (shard_batch(make_batch(val_sessions, dtype, config.burn_in_s, multiple, gaps))
            if val_sessions else None)
     B, T = batch.truth.shape[:2]
     chunk = config.remat_chunk or auto_chunk(T, config.batch_size or B)
@@ -305,7 +323,8 @@ def fit(
     # steps see identically placed inputs and compile once).
     replicated = jax.sharding.NamedSharding(trial_mesh(), jax.sharding.PartitionSpec())
     identity = {"config": asdict(config), "fingerprint": fingerprint(sessions, val_sessions)}
-    result = train(loss, params, batch, len(sessions), config.train_config(), val_batch=val,
+    n_trials = len(trial_sessions(sessions, gaps))
+    result = train(loss, params, batch, n_trials, config.train_config(), val_batch=val,
                    val_loss=val_loss, checkpoint=checkpoint, resume=resume, identity=identity,
                    callback=callback, place=lambda x: jax.device_put(x, replicated))
     result.seconds = time.perf_counter() - t0
@@ -315,8 +334,6 @@ def fit(
 def fit_info(result: FitResult, sessions: Sequence[Session], val: Sequence[Session],
              config: FitConfig) -> dict:
     """Metadata stored with fitted parameters (the ``fit`` entry of the JSON file)."""
-    from . import __version__
-
     return {"kckf_jax": __version__, "date": time.strftime("%Y-%m-%dT%H:%M:%S"),
             "sessions": [s.path for s in sessions], "val_sessions": [s.path for s in val],
             "config": {k: v for k, v in asdict(replace(config)).items()},

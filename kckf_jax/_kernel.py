@@ -21,6 +21,10 @@ Conventions shared with the NumPy reference in ``tests/``:
 * the gyro rates of row ``k - 1`` drive the prediction from ``k - 1`` to ``k`` (Eq. 9 uses
   ``omega(k)`` to reach ``k + 1``); a missing gyro reading holds that channel's last value;
 * a missing Hall reading (NaN) removes only its own measurement row at that step;
+* a reading outside its physical range (``Params.limits``: a fault in the data, not a
+  reading) is treated as missing;
+* a Kalman step whose new state is not finite is skipped: the state is kept as it was, and
+  ``Estimate.skipped`` says so (the streaming filter reports it as ``rejected``);
 * a padded step (``dt = 0``, every reading NaN) leaves the state unchanged.
 
 Numerics (docs/numerics.md): measurements are processed one scalar at a time (``R`` is
@@ -30,6 +34,8 @@ coordinates of ``_model.structure``. There is no matrix inverse or LAPACK call i
 """
 
 from __future__ import annotations
+
+import dataclasses
 
 import equinox as eqx
 import jax
@@ -85,15 +91,39 @@ class Estimate(eqx.Module):
     """Per-step output, in ``Robot.angle_names`` order (joint axes, then torso axes).
 
     ``angles`` (rad), ``angle_std`` (rad) and ``bias`` (rad/s, joint and torso biases); NaN
-    where the method does not estimate a quantity. ``path`` (static) names the computation
-    that produced it (``"sequential"``, ``"steady"``, ...; ``None`` for a bare ``step`` or
-    ``scan_filter``): every path gives the same estimates, to rounding.
+    where the method does not estimate a quantity. ``skipped``: the steps whose update was not
+    finite and left the state as it was (``None`` where nothing computed it). ``path``
+    (static) names the computation that produced it (``"sequential"``, ``"steady"``, ...;
+    ``None`` for a bare ``step`` or ``scan_filter``): every path gives the same estimates, to
+    rounding. ``names`` (static, set by ``run_filter`` and friends) are the angles' names:
+    ``columns()`` gives the estimates keyed by them.
     """
 
-    angles: Float[Array, "*T K"]
-    angle_std: Float[Array, "*T K"]
-    bias: Float[Array, "*T K"]
+    angles: Float[ArrayLike, "*T K"]
+    angle_std: Float[ArrayLike, "*T K"]
+    bias: Float[ArrayLike, "*T K"]
+    skipped: Bool[ArrayLike, "*T"] | None = None
     path: str | None = eqx.field(static=True, default=None)
+    names: tuple[str, ...] | None = eqx.field(static=True, default=None)
+
+    def columns(self, what: str = "angles") -> dict[str, np.ndarray]:
+        """The estimated ``what`` (``"angles"``, ``"angle_std"`` or ``"bias"``) as NumPy columns
+        keyed by angle name (``Robot.angle_names``); an angle the method does not estimate (NaN
+        throughout) is left out. Needs ``names`` (set by ``run_filter``, ``filter_batch`` and
+        ``filter_sessions``).
+
+        Example:
+            >>> robot = Robot.from_spec("x")
+            >>> series = SensorSeries(jnp.full(3, 0.01), jnp.zeros((3, 6)), jnp.ones((3, 2)))
+            >>> sorted(run_filter(Params.paper_defaults(robot), series)[1].columns())
+            ['phi_x', 'theta1_x']
+        """
+        if self.names is None:
+            raise ValueError("Estimate.columns: this estimate has no names; use one from "
+                             "run_filter, filter_batch or filter_sessions")
+        values = np.asarray(getattr(self, what))
+        return {n: values[..., k] for k, n in enumerate(self.names)
+                if np.isfinite(values[..., k]).any()}
 
 
 def check_method(method: str) -> None:
@@ -241,7 +271,13 @@ def _kalman_step(params: Params, state: FilterState, inputs: SensorSeries, metho
                                                            rb, vb)
     gyro = inputs.gyro.astype(state.z.dtype)
     hold = jnp.where(jnp.isfinite(gyro), gyro, state.gyro_hold)
-    return FilterState(z, P, hold), block_estimate(st, z, P)
+    # An update that is not finite (a time step so long that the prediction overflows) is
+    # skipped: the whole state stays as it was, so nothing can poison it.
+    ok = jnp.isfinite(z).all() & jnp.isfinite(P).all()
+    new = jax.tree_util.tree_map(lambda a, b: jnp.where(ok, a, b), FilterState(z, P, hold),
+                                 state)
+    est = block_estimate(st, new.z, new.P)
+    return new, dataclasses.replace(est, skipped=~ok)
 
 
 def _baseline_step(params: Params, state: FilterState, inputs: SensorSeries, method: str):
@@ -261,7 +297,7 @@ def _baseline_step(params: Params, state: FilterState, inputs: SensorSeries, met
         z = jnp.where(valid[side::2], angle[side::2], state.z)
         angles = jnp.concatenate([z, jnp.full(K - J, jnp.nan, dtype)])
     hold = jnp.where(jnp.isfinite(gyro), gyro, state.gyro_hold)
-    return FilterState(z, state.P, hold), Estimate(angles, nan_k, nan_k)
+    return FilterState(z, state.P, hold), Estimate(angles, nan_k, nan_k, jnp.zeros((), bool))
 
 
 def step(
@@ -270,12 +306,20 @@ def step(
     """One time step of ``method``: predict from the previous row, then update with this row.
 
     Pure and jit-friendly (``method`` must be static). ``inputs`` is one row of a
-    ``SensorSeries``.
+    ``SensorSeries``; a reading outside ``params.limits`` counts as missing.
     """
     check_method(method)
+    inputs = plausible(params, inputs)
     if method in FILTER_METHODS:
         return _kalman_step(params, state, inputs, method)
     return _baseline_step(params, state, inputs, method)
+
+
+def plausible(params: Params, series: SensorSeries) -> SensorSeries:
+    """``series`` (a row, a recording or a batch) with every reading outside
+    ``params.limits`` made missing: a fault in the data, treated like a dropped reading."""
+    gyro, hall_v = params.limits.mask(jnp.asarray(series.gyro), jnp.asarray(series.hall_v))
+    return SensorSeries(series.dt, gyro, hall_v)
 
 
 def scan_filter(
@@ -320,21 +364,33 @@ def scan_filter(
     return final, est
 
 
-def pad_series(series: list[SensorSeries], length: int | None = None) -> SensorSeries:
-    """Stack trials of uneven length into one batch; padding rows are no-op steps."""
+def pad_trials(series: list, length: int | None = None, what: str = "pad_series"):
+    """Stack trials of uneven length (any series module with a ``dt`` field: ``SensorSeries``,
+    ``filters.ArmImuSeries``) into one batch: ``dt`` padded with 0, every other field with
+    NaN (missing), so padding rows are no-op steps. ``length``: the padded length (default
+    the longest trial's)."""
     if not series:
-        raise ValueError("pad_series: no trials given")
+        raise ValueError(f"{what}: no trials given")
     T = max(int(np.shape(s.dt)[0]) for s in series) if length is None else length
 
     def pad(x, fill):
         x = np.asarray(x)
         if x.shape[0] > T:
-            raise ValueError(f"pad_series: a trial has {x.shape[0]} rows, more than {T}")
-        widths = [(0, T - x.shape[0])] + [(0, 0)] * (x.ndim - 1)
-        return np.pad(x, widths, constant_values=fill)
+            raise ValueError(f"{what}: a trial has {x.shape[0]} rows, more than {T}")
+        return np.pad(x, [(0, T - x.shape[0])] + [(0, 0)] * (x.ndim - 1), constant_values=fill)
 
-    return SensorSeries(
-        dt=np.stack([pad(s.dt, 0.0) for s in series]),
-        gyro=np.stack([pad(s.gyro, np.nan) for s in series]),
-        hall_v=np.stack([pad(s.hall_v, np.nan) for s in series]),
-    )
+    names = [f.name for f in dataclasses.fields(series[0])]
+    return type(series[0])(**{n: np.stack([pad(getattr(s, n), 0.0 if n == "dt" else np.nan)
+                                           for s in series]) for n in names})
+
+
+def pad_series(series: list[SensorSeries], length: int | None = None) -> SensorSeries:
+    """Stack trials of uneven length into one batch; padding rows are no-op steps.
+
+    Example:
+        >>> trials = [SensorSeries(np.full(n, 0.01), np.zeros((n, 6)), np.ones((n, 2)))
+        ...           for n in (3, 5)]
+        >>> pad_series(trials).hall_v.shape
+        (2, 5, 2)
+    """
+    return pad_trials(series, length, "pad_series")

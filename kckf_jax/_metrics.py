@@ -36,13 +36,16 @@ def rmse_table(
         burn_in_s: leave out the first seconds of every session.
 
     Returns:
-        ``{"rmse_deg": {name: x}, "mean_rmse_deg": x, "per_session": {key: {name: x}}}``:
-        the layout of ``kckf evaluate --json`` for one method. An angle the method does not
-        estimate is left out.
+        ``{"rmse_deg": {name: x}, "mean_rmse_deg": x, "per_session": {key: {name: x}},
+        "steps_with_truth": {name: n}, "steps_scored": {name: n}}``: the layout of
+        ``kckf evaluate --json`` for one method. An angle the method does not estimate is
+        left out; a step with truth but no estimate (NaN) is not scored, and the counts say
+        how many steps each RMSE is over.
     """
     robot = sessions[0].robot
     sse = np.zeros(robot.n_angles)
     cnt = np.zeros(robot.n_angles)
+    with_truth = np.zeros(robot.n_angles, int)
     per_session = {}
     names = None
     for i, (s, est) in enumerate(zip(sessions, estimates)):
@@ -52,6 +55,7 @@ def rmse_table(
         e2, n = squared_errors(est, truth)
         sse += e2
         cnt += n
+        with_truth += np.isfinite(truth).sum(axis=0)
         names = names or estimated_names(robot, est)
         key = s.path or f"session{i + 1}"
         per_session[key] = {
@@ -61,7 +65,12 @@ def rmse_table(
     rmse = {name: float(np.sqrt(sse[k] / cnt[k]) * RAD2DEG)
             for k, name in enumerate(robot.angle_names) if name in names and cnt[k] > 0}
     mean = float(np.mean(list(rmse.values()))) if rmse else float("nan")
-    return {"rmse_deg": rmse, "mean_rmse_deg": mean, "per_session": per_session}
+    names = names or []
+    return {"rmse_deg": rmse, "mean_rmse_deg": mean, "per_session": per_session,
+            "steps_with_truth": {n: int(with_truth[k]) for k, n in enumerate(robot.angle_names)
+                                 if n in names},
+            "steps_scored": {n: int(cnt[k]) for k, n in enumerate(robot.angle_names)
+                             if n in names}}
 
 
 def fused_hall_error(params, reference, sessions: Sequence[Session]) -> np.ndarray:

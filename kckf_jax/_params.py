@@ -17,6 +17,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from ._hall import DEG, PAPER_HALL_DEG
+from ._limits import SensorLimits
 from ._robot import Robot
 
 HALL_NOISE_MODELS = ("angle", "voltage")
@@ -56,7 +57,8 @@ class Params(eqx.Module):
       (the torso angle's own entry is used by ``kf`` only: in the KCKF, ``phi = sum theta``);
     * ``log_hall_a``, ``log_hall_b``, ``log_hall_c``, ``log_hall_d`` (M): Eq. 1 per sensor, rad.
 
-    Static: the ``robot``, each sensor's ``hall_sign`` and the ``hall_noise`` model.
+    Static: the ``robot``, each sensor's ``hall_sign``, the ``hall_noise`` model and the
+    readings' physical ``limits`` (``SensorLimits``: beyond them a reading is missing).
 
     Example:
         >>> p = Params.paper_defaults(Robot.from_spec("x,y,x,y"))
@@ -78,6 +80,7 @@ class Params(eqx.Module):
     robot: Robot = eqx.field(static=True)
     hall_sign: tuple[int, ...] = eqx.field(static=True)
     hall_noise: str = eqx.field(static=True, default="angle")
+    limits: SensorLimits = eqx.field(static=True, default=SensorLimits())
 
     def __check_init__(self):
         K, M = self.robot.n_angles, self.robot.n_hall
@@ -132,6 +135,7 @@ class Params(eqx.Module):
         p0_bias: float | np.ndarray = DEFAULT_P0_BIAS_RAD_S,
         hall_models: Mapping[str, Mapping] | None = None,
         hall_noise: str = "angle",
+        limits: SensorLimits | None = None,
         dtype=None,
     ) -> Params:
         """Build from physical values (scalars broadcast; arrays per coordinate or sensor).
@@ -164,13 +168,14 @@ class Params(eqx.Module):
         )
         leaves = {k: jnp.asarray(v, dtype=dt) for k, v in leaves.items()}
         return cls(**leaves, robot=robot, hall_sign=tuple(int(s) for s in sign),
-                   hall_noise=hall_noise)
+                   hall_noise=hall_noise, limits=limits or SensorLimits())
 
     @classmethod
     def paper_defaults(cls, robot: Robot, hall_models: Mapping[str, Mapping] | None = None,
-                       dtype=None) -> Params:
-        """The paper's filter: Eq. 13 Q (scale 1 deg^2/s^4), sigma_hall = 3.2 deg (Eq. 20)."""
-        return cls.from_physical(robot, hall_models=hall_models, dtype=dtype)
+                       dtype=None, limits: SensorLimits | None = None) -> Params:
+        """The paper's filter: Eq. 13 Q (scale 1 deg^2/s^4), sigma_hall = 3.2 deg (Eq. 20);
+        ``hall_models`` as in ``meta.json`` (degrees or radians, by their ``unit``)."""
+        return cls.from_physical(robot, hall_models=hall_models, dtype=dtype, limits=limits)
 
     def astype(self, dtype) -> Params:
         """The same parameters with every leaf cast to ``dtype``."""
@@ -257,6 +262,7 @@ def params_to_dict(params: Params, fit_info: Mapping | None = None) -> dict:
         "format": PARAMS_FORMAT,
         "joints": robot.to_meta(),
         "hall_noise": params.hall_noise,
+        "limits": params.limits.to_meta(),
         "process_noise": {
             name: {"q_rad2_s4": f["q"][k], "angle_rw_rad_rts": f["angle_rw"][k],
                    "bias_rw_rad_s_rts": f["bias_rw"][k]}
@@ -307,6 +313,10 @@ def params_from_dict(doc: object, where: str = "parameters", dtype=None) -> Para
     noise = doc.get("hall_noise", "angle")
     if noise not in HALL_NOISE_MODELS:
         raise fail("hall_noise", " or ".join(map(repr, HALL_NOISE_MODELS)), noise)
+    try:
+        limits = SensorLimits.from_meta(obj(doc.get("limits", {}), "limits"), f"{where}: limits")
+    except ValueError as exc:
+        raise ParamsFileError(str(exc)) from None
     pn, p0, hall = (obj(doc.get(k), k) for k in ("process_noise", "initial_std", "hall"))
     vals: dict[str, list] = {k: [] for k in ("q", "angle_rw", "bias_rw", "p0_angle", "p0_bias",
                                              "sigma_hall", "sigma_hall_v")}
@@ -335,7 +345,7 @@ def params_from_dict(doc: object, where: str = "parameters", dtype=None) -> Para
                 f"(joints {robot.spec}); expected {', '.join(names)}")
     try:
         return Params.from_physical(robot, hall_models=models, hall_noise=noise, dtype=dtype,
-                                    **{k: np.asarray(v) for k, v in vals.items()})
+                                    limits=limits, **{k: np.asarray(v) for k, v in vals.items()})
     except ValueError as exc:
         raise ParamsFileError(f"{where}: {exc}") from None
 

@@ -9,9 +9,13 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
+import numpy as np
+
+from ._gaps import GapPolicy, find_gaps
+from ._gaps import describe as describe_gaps
 from ._metrics import rmse_table
 from ._params import Params
-from ._run import filter_sessions
+from ._run import filter_sessions, session_params
 from ._session import Session
 
 PAPER_TABLE_METHODS = ("gyro", "hall_l", "hall_r", "kf", "kckf")
@@ -19,11 +23,61 @@ TABLE_LABELS = {"gyro": "Gyro", "hall_l": "Hall l", "hall_r": "Hall r", "kf": "S
                 "kckf": "KCKF", "kckf_fit": "KCKF fit"}
 
 
+def data_faults(sessions: Sequence[Session], params: Params | None = None,
+                gaps: GapPolicy = GapPolicy()) -> tuple[dict, list[str]]:
+    """What is wrong with the data, before any filter runs: per session, the readings outside
+    their physical range (which every filter treats as missing) and the gaps in the sensor
+    rows (and what the filter does across them). Returns the JSON form ``{"out_of_range":
+    {session: {column: {"count", "first_t_s"}}}, "gaps": {session: [gap, ...]}}`` (sessions
+    with nothing to say left out) and one line for people per finding."""
+    out_of_range, gap_doc, lines = {}, {}, []
+    for s, p in zip(sessions, session_params(sessions, params)):
+        key = s.path or "session"
+        bad_g, bad_h = p.limits.outside(s.gyro, s.hall_v)
+        names = s.robot.gyro_names + s.robot.hall_names
+        bad = np.concatenate([bad_g, bad_h], axis=1)
+        cols = {}
+        for j in np.flatnonzero(bad.any(axis=0)):
+            rows = np.flatnonzero(bad[:, j])
+            cols[names[j]] = {"count": int(rows.size), "first_t_s": float(s.t[rows[0]])}
+        if cols:
+            out_of_range[key] = cols
+            text = ", ".join(f"{n} x{c['count']} (first at t = {c['first_t_s']:.6g} s)"
+                             for n, c in list(cols.items())[:4])
+            more = f" and {len(cols) - 4} more columns" if len(cols) > 4 else ""
+            lines.append(f"{key}: {int(bad.sum())} reading(s) outside the physical range "
+                         f"({p.limits.describe()}) treated as missing: {text}{more}")
+        found = find_gaps(s.t, gaps)
+        if found:
+            gap_doc[key] = [g.to_json() for g in found]
+            lines.append(describe_gaps(key, found))
+    return {"out_of_range": out_of_range, "gaps": gap_doc}, lines
+
+
+def estimate_faults(sessions: Sequence[Session], method: str, estimates) -> list[str]:
+    """Lines for people about the steps a filter skipped (its update was not finite; the state
+    was kept)."""
+    lines = []
+    for s, e in zip(sessions, estimates):
+        skipped = np.asarray(e.skipped) if e.skipped is not None else np.zeros(0, bool)
+        if skipped.any():
+            rows = np.flatnonzero(skipped)
+            lines.append(f"{s.path or 'session'}: {method}: {rows.size} update(s) were not "
+                         f"finite and were skipped, the state kept (first at t = "
+                         f"{s.t[rows[0]]:.6g} s)")
+    return lines
+
+
 def evaluate_sessions(sessions: Sequence[Session], methods: Sequence[str],
-                      params: Params | None = None, burn_in_s: float = 0.0):
-    """RMSE of every method on ``sessions``: the ``kckf evaluate --json`` document (each
-    method with the ``"path"`` that computed it) and the estimated angles ``{method: [(T, K)
-    per session]}``.
+                      params: Params | None = None, burn_in_s: float = 0.0,
+                      gaps: GapPolicy = GapPolicy()):
+    """Every method on ``sessions``: the ``kckf evaluate --json`` document and the estimated
+    angles ``{method: [(T, K) per session]}``.
+
+    Each method has its RMSE table (``rmse_table``: with the count of steps that have truth
+    and of steps scored), the ``"path"`` that computed it and the ``"skipped_updates"``; the
+    document has what is wrong with the data (``data_faults``) and ``"warnings"``: one line
+    for people per finding, and per method whose RMSE is over fewer steps than have truth.
 
     Raises ``ValueError`` naming the session when one has no motion capture over its sensor
     rows."""
@@ -33,13 +87,24 @@ def evaluate_sessions(sessions: Sequence[Session], methods: Sequence[str],
                 f"{s.path}: no motion capture overlaps the sensors (mocap.csv is needed to "
                 "evaluate)"
             )
+    faults, warnings = data_faults(sessions, params, gaps)
     out, angles = {}, {}
     for m in methods:
-        est = filter_sessions(sessions, m, params)
+        est = filter_sessions(sessions, m, params, gaps=gaps)
         angles[m] = [e.angles for e in est]
         out[m] = rmse_table(sessions, angles[m], burn_in_s)
         out[m]["path"] = "+".join(dict.fromkeys(e.path for e in est))
-    return {"methods": out, "sessions": [s.path for s in sessions]}, angles
+        out[m]["skipped_updates"] = int(sum(np.asarray(e.skipped).sum() for e in est))
+        warnings += estimate_faults(sessions, m, est)
+        short = {n: (out[m]["steps_scored"][n], k) for n, k in out[m]["steps_with_truth"].items()
+                 if out[m]["steps_scored"][n] < k}
+        if short:
+            text = ", ".join(f"{n} {a} of {k}" for n, (a, k) in list(short.items())[:4])
+            warnings.append(f"{m}: RMSE over fewer steps than have truth (no estimate at the "
+                            f"others): {text}")
+    doc = {"methods": out, "sessions": [s.path for s in sessions], **faults,
+           "warnings": warnings}
+    return doc, angles
 
 
 def format_table(results: dict, robot, methods: Sequence[str], title: str = "") -> str:
@@ -81,8 +146,6 @@ def write_estimates(path: str, session: Session, est) -> None:
     """``kckf filter``'s CSV: ``t`` and one column per estimated angle (rad), named as in
     ``mocap.csv``; an angle the method does not estimate is left out, a NaN is an empty cell."""
     import os
-
-    import numpy as np
 
     robot = session.robot
     names = [n for k, n in enumerate(robot.angle_names) if np.isfinite(est.angles[:, k]).any()]

@@ -96,12 +96,14 @@ class Robot:
             axes = j.get("axes") if isinstance(j, dict) else None
             if not isinstance(axes, list) or not axes or not all(isinstance(a, str) for a in axes):
                 raise ValueError(
-                    f"{where}: joints[{i - 1}] must look like {{\"axes\": [\"x\"]}}, got {j!r}"
+                    f"{where}: joint {i} (joints[{i - 1}]) must look like {{\"axes\": [\"x\"]}}, "
+                    f"got {j!r}"
                 )
             for a in axes:
                 if a not in AXES:
                     raise ValueError(
-                        f"{where}: joints[{i - 1}] has unknown axis {a!r}; expected 'x', 'y' or 'z'"
+                        f"{where}: joint {i} (joints[{i - 1}]) has unknown axis {a!r}; expected "
+                        "'x', 'y' or 'z'"
                     )
             out.append(tuple(a for a in AXES if a in axes))
         return cls(tuple(out))

@@ -16,10 +16,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._gaps import GapPolicy
 from ._kernel import Estimate, FilterState, SensorSeries, check_method, init_state, pad_series
 from ._params import Params
 from ._paths import AbstractPath, Auto, PathChoice, as_path
-from ._session import Session
+from ._session import Session, split_at_gaps
 
 
 def choose_path(params: Params, series: SensorSeries, method: str = "kckf",
@@ -79,7 +80,7 @@ def run_filter(
     if state is None:
         state = init_state(params, method)
     final, est = _run_one(chosen, params, series, method, state)
-    return final, dataclasses.replace(est, path=chosen.name)
+    return final, dataclasses.replace(est, path=chosen.name, names=params.robot.angle_names)
 
 
 @eqx.filter_jit
@@ -104,7 +105,7 @@ def filter_batch(params: Params, series: SensorSeries, method: str = "kckf",
     check_method(method)
     chosen = choose_path(params, series, method, path).path
     est = _run_batch(chosen, params, series, method)
-    return dataclasses.replace(est, path=chosen.name)
+    return dataclasses.replace(est, path=chosen.name, names=params.robot.angle_names)
 
 
 @eqx.filter_jit
@@ -117,7 +118,10 @@ def _run_batch(path: AbstractPath, params, series, method):
 
 # ---------------------------------------------------------------------------- sessions
 def session_series(session: Session, dtype=None) -> SensorSeries:
-    """The filter inputs of a session; time differenced in float64 before any cast."""
+    """The filter inputs of a session; time differenced in float64 before any cast.
+    ``dtype=np.float64`` keeps NumPy arrays (for ``pad_series``)."""
+    if dtype is np.float64:
+        return SensorSeries(session.dt(), session.gyro, session.hall_v)
     dtype = dtype or jnp.asarray(0.0).dtype
     return SensorSeries(jnp.asarray(session.dt(), dtype), jnp.asarray(session.gyro, dtype),
                         jnp.asarray(session.hall_v, dtype))
@@ -141,7 +145,8 @@ def common_robot(sessions: Sequence[Session]):
 def session_params(sessions: Sequence[Session], params: Params | None = None,
                    dtype=None) -> list[Params]:
     """One parameter set per session: ``params`` if given, else the paper defaults with the
-    session's own Hall calibration (``meta.json``'s ``hall_models``)."""
+    session's own Hall calibration (``meta.json``'s ``hall_models``); either way with the
+    physical limits a session states (``Session.limits``), which describe its hardware."""
     robot = common_robot(sessions)
     if params is not None:
         if params.robot != robot:
@@ -149,8 +154,11 @@ def session_params(sessions: Sequence[Session], params: Params | None = None,
                 f"parameters are for robot {params.robot.spec!r} but the sessions have "
                 f"{robot.spec!r}"
             )
-        return [params.astype(dtype) if dtype is not None else params] * len(sessions)
-    return [Params.paper_defaults(robot, s.hall_models, dtype=dtype) for s in sessions]
+        params = params.astype(dtype) if dtype is not None else params
+        return [params if s.limits is None else dataclasses.replace(params, limits=s.limits)
+                for s in sessions]
+    return [Params.paper_defaults(robot, s.hall_models, dtype=dtype, limits=s.limits)
+            for s in sessions]
 
 
 def same_params(a: Params, b: Params) -> bool:
@@ -164,33 +172,43 @@ def same_params(a: Params, b: Params) -> bool:
 
 def filter_sessions(
     sessions: Sequence[Session], method: str = "kckf", params: Params | None = None,
-    dtype=None, path: str | AbstractPath = "auto",
+    dtype=None, path: str | AbstractPath = "auto", gaps: GapPolicy = GapPolicy(),
 ) -> list[Estimate]:
     """Run ``method`` over every session; one ``Estimate`` per session, cut back to the
     session's own length, as NumPy arrays, its ``path`` naming the path that ran.
 
     Sessions that share one parameter set (``params``, or the same ``meta.json`` calibration)
     are padded to one length and filtered as one batch (``filter_batch``: one compiled call,
-    the path chosen on the batch); a single regular session takes the steady path."""
+    the path chosen on the batch); a single regular session takes the steady path. A gap in
+    the sensor rows gets ``gaps``' policy: predicted across, or (``on_gap="restart"``, or
+    longer than ``max_predict_s``) the filter starts again after it, the stretches then being
+    trials of the batch (``split_at_gaps``)."""
     check_method(method)
     plist = session_params(sessions, params, dtype)
+    pieces = [(i, piece) for i, s in enumerate(sessions) for piece in split_at_gaps(s, gaps)]
     groups: list[tuple[Params, list[int]]] = []
-    for i, p in enumerate(plist):
+    for j, (i, _) in enumerate(pieces):
         for rep, members in groups:
-            if same_params(rep, p):
-                members.append(i)
+            if same_params(rep, plist[i]):
+                members.append(j)
                 break
         else:
-            groups.append((p, [i]))
-    out: list[Estimate | None] = [None] * len(sessions)
+            groups.append((plist[i], [j]))
+    out: list[Estimate | None] = [None] * len(pieces)
     for p, members in groups:
         dtype_p = p.log_q.dtype
-        batch = pad_series([SensorSeries(sessions[i].dt(), sessions[i].gyro,
-                                         sessions[i].hall_v) for i in members])
+        batch = pad_series([session_series(pieces[j][1], np.float64) for j in members])
         batch = jax.tree_util.tree_map(lambda x, d=dtype_p: jnp.asarray(x, d), batch)
         est = filter_batch(p, batch, method, path)
         arrays = jax.tree_util.tree_map(np.asarray, est)
-        for b, i in enumerate(members):
-            out[i] = jax.tree_util.tree_map(lambda x, n=sessions[i].n_steps, b=b: x[b, :n],
-                                            arrays)
-    return out
+        for b, j in enumerate(members):
+            n = pieces[j][1].n_steps
+            out[j] = jax.tree_util.tree_map(lambda x, n=n, b=b: x[b, :n], arrays)
+    per_session = []
+    for i in range(len(sessions)):
+        mine = [out[j] for j, (k, _) in enumerate(pieces) if k == i]
+        paths = "+".join(dict.fromkeys(e.path for e in mine))
+        joined = jax.tree_util.tree_map(lambda *x: np.concatenate(x),
+                                        *[dataclasses.replace(e, path=None) for e in mine])
+        per_session.append(dataclasses.replace(joined, path=paths))
+    return per_session

@@ -13,38 +13,41 @@ never imports it.
 
 from __future__ import annotations
 
-import csv
-import io
+import dataclasses
 import json
 import math
 import os
-import warnings
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from ._csvio import (
+    META_FILE,
+    MOCAP_FILE,
+    SENSORS_FILE,
+    SessionError,
+    _read_csv,
+    _read_text,
+    _write_csv,
+)
+from ._gaps import GapPolicy, find_gaps, segments
+from ._limits import SensorLimits
 from ._params import hall_arrays
 from ._robot import Robot
 
 FORMAT = "kckf-session/1"
-META_FILE = "meta.json"
-SENSORS_FILE = "sensors.csv"
-MOCAP_FILE = "mocap.csv"
 #: ``meta.json`` keys this module reads; any other key goes to ``Session.extra_meta``.
 META_KEYS = (
     "format", "joints", "sample_rate_hz", "mocap_time_offset_s", "hall_models", "description",
+    "hall_v_range", "gyro_range_rad_s",
 )
+#: Plausibility at read time: the median time step may differ from ``1 / sample_rate_hz`` by
+#: at most this factor, and motion-capture angles may not exceed this magnitude (rad).
+STEP_FACTOR = 2.0
+MAX_ANGLE_RAD = 2.0 * math.pi
 #: Default ``max_gap_s`` of ``align_mocap``, in median mocap frame intervals.
 MAX_GAP_FRAMES = 3.0
-
-
-class SessionError(ValueError):
-    """A malformed session, in one user-facing line.
-
-    The message names the file, the row (its line number in the file, the header being line 1)
-    and/or the column, what was found and what was expected.
-    """
 
 
 @dataclass(eq=False)
@@ -64,6 +67,9 @@ class Session:
         hall_models: per-sensor Eq. (1) models as in ``meta.json`` (may be empty).
         description: free text.
         extra_meta: unknown ``meta.json`` keys, kept and written back.
+        limits: the readings' physical range (``SensorLimits``; ``meta.json``'s optional
+            ``hall_v_range`` and ``gyro_range_rad_s``), ``None`` when the session states
+            none (the filter's parameters then decide).
         path: the folder it was read from, if any.
 
     The arrays are validated (and numeric arrays converted to float64) on construction; they
@@ -90,6 +96,7 @@ class Session:
     description: str = ""
     extra_meta: dict = field(default_factory=dict)
     path: str | None = None
+    limits: SensorLimits | None = None
     _truth: np.ndarray | None = field(default=None, init=False, repr=False)
 
     def __post_init__(self):
@@ -253,12 +260,16 @@ def align_mocap(
 # ---------------------------------------------------------------------- reading
 
 
-def read_session(path: str | os.PathLike, *, require_mocap: bool = False) -> Session:
+def read_session(path: str | os.PathLike, *, require_mocap: bool = False,
+                 plausible: bool = True) -> Session:
     """Read and validate a ``kckf-session/1`` folder.
 
     Args:
         path: the session folder (``meta.json``, ``sensors.csv``, optional ``mocap.csv``).
         require_mocap: raise when ``mocap.csv`` is absent (to fit or evaluate).
+        plausible: also reject a session that is well formed but implausible
+            (``check_plausible``: timestamps that are not in seconds, mocap angles that are
+            not in radians); ``False`` reads it anyway.
 
     Returns:
         A ``Session``; gyro columns the file lacks and the filters do not read (e.g. the ``z``
@@ -266,8 +277,9 @@ def read_session(path: str | os.PathLike, *, require_mocap: bool = False) -> Ses
 
     Raises:
         SessionError: a missing file, broken JSON, a missing column, a bad cell, a row of the
-            wrong length, a non-increasing ``t``, or mocap that does not overlap the sensors;
-            the message is one line and names the file, line and column.
+            wrong length, a non-increasing ``t``, mocap that does not overlap the sensors, or
+            an implausible session; the message is one line and names the file, line and
+            column.
 
     Example:
         >>> s = read_session("data/bench_cyclic_1")  # doctest: +SKIP
@@ -299,6 +311,7 @@ def read_session(path: str | os.PathLike, *, require_mocap: bool = False) -> Ses
     if not isinstance(description, str):
         raise SessionError(f"{meta_path}: 'description' must be a string, got {description!r}")
     extra_meta = {k: v for k, v in meta.items() if k not in META_KEYS}
+    limits = _limits_of(meta, meta_path)
 
     context = f"the robot in {META_FILE} has joints {robot.spec}"
     sensors_path = os.path.join(folder, SENSORS_FILE)
@@ -335,18 +348,73 @@ def read_session(path: str | os.PathLike, *, require_mocap: bool = False) -> Ses
             " is needed to fit or evaluate"
         )
 
-    return Session(
+    session = Session(
         robot=robot, t=t, gyro=gyro, hall_v=hall_v, sample_rate_hz=float(sample_rate_hz),
         mocap_t=mocap_t, mocap=mocap, mocap_time_offset_s=float(offset_s),
         hall_models=hall_models, description=description, extra_meta=extra_meta, path=folder,
+        limits=limits,
     )
+    if plausible:
+        check_plausible(session)
+    return session
 
 
-def read_meta(meta_path: str | os.PathLike) -> tuple[Robot, dict]:
-    """The robot layout and Hall calibration of a ``meta.json`` (validated as in
-    ``read_session``): what a live stream needs to know about the robot."""
-    _, robot, hall_models = _read_meta_checked(os.fspath(meta_path))
-    return robot, hall_models
+def check_plausible(session: Session) -> None:
+    """Reject a well-formed session whose numbers cannot be what the format says they are:
+    a ``SessionError`` naming the file, the column, what was found and what was expected.
+
+    * the median time step differs from ``1 / sample_rate_hz`` by more than a factor of
+      ``STEP_FACTOR`` (2): timestamps in milliseconds, or the wrong rate in ``meta.json``;
+    * a motion-capture angle beyond ``MAX_ANGLE_RAD`` (2 pi): angles in degrees.
+
+    ``read_session(..., plausible=False)`` (the commands' ``--accept-implausible``) skips it."""
+    folder = session.path or "session"
+    if session.n_steps > 1:
+        med = float(np.median(np.diff(session.t)))
+        expected = 1.0 / session.sample_rate_hz
+        if not expected / STEP_FACTOR <= med <= expected * STEP_FACTOR:
+            raise SessionError(
+                f"{os.path.join(folder, SENSORS_FILE)}, column 't': the median time step is "
+                f"{med:.6g} s, but {META_FILE}'s sample_rate_hz = {session.sample_rate_hz:g} Hz "
+                f"means {expected:.6g} s (t must be in seconds; timestamps in milliseconds?); "
+                "fix the file or sample_rate_hz, or pass --accept-implausible")
+    if session.mocap is not None:
+        big = np.abs(np.nan_to_num(session.mocap)) > MAX_ANGLE_RAD
+        if big.any():
+            k = int(np.argmax(big.any(axis=0)))
+            worst = float(np.nanmax(np.abs(session.mocap[:, k])))
+            raise SessionError(
+                f"{os.path.join(folder, MOCAP_FILE)}, column {session.robot.angle_names[k]!r}: "
+                f"|angle| reaches {worst:.6g}, beyond 2 pi (angles must be in rad; degrees?); "
+                "fix the file, or pass --accept-implausible")
+
+
+def split_at_gaps(session: Session, policy: GapPolicy) -> list[Session]:
+    """``session`` cut at every gap where ``policy`` restarts the filter (``_gaps``): one
+    session per stretch (the same motion capture, so the truth of each row is unchanged);
+    ``[session]`` when nothing restarts."""
+    cuts = segments(session.n_steps, find_gaps(session.t, policy))
+    if len(cuts) == 1:
+        return [session]
+    return [dataclasses.replace(session, t=session.t[a:b], gyro=session.gyro[a:b],
+                                hall_v=session.hall_v[a:b]) for a, b in cuts]
+
+
+def read_meta(meta_path: str | os.PathLike) -> tuple[Robot, dict, SensorLimits | None]:
+    """The robot layout, Hall calibration and stated physical limits (or None) of a
+    ``meta.json`` (validated as in ``read_session``): what a live stream needs to know about
+    the robot."""
+    meta, robot, hall_models = _read_meta_checked(os.fspath(meta_path))
+    return robot, hall_models, _limits_of(meta, os.fspath(meta_path))
+
+
+def _limits_of(meta: dict, meta_path: str) -> SensorLimits | None:
+    if "hall_v_range" not in meta and "gyro_range_rad_s" not in meta:
+        return None
+    try:
+        return SensorLimits.from_meta(meta, meta_path)
+    except ValueError as exc:
+        raise SessionError(str(exc)) from None
 
 
 def _read_meta_checked(meta_path: str) -> tuple[dict, Robot, dict]:
@@ -384,140 +452,6 @@ def _read_meta(meta_path: str) -> dict:
     return meta
 
 
-def _read_text(file: str) -> str:
-    try:
-        with open(file, encoding="utf-8-sig", newline="") as f:
-            return f.read()
-    except FileNotFoundError:
-        raise SessionError(
-            f"{file}: file not found (a session folder holds {META_FILE}, {SENSORS_FILE} "
-            f"and optionally {MOCAP_FILE})"
-        ) from None
-    except UnicodeDecodeError as e:
-        raise SessionError(f"{file}: not UTF-8 text (byte {e.start}: {e.reason})") from None
-    except OSError as e:
-        raise SessionError(f"{file}: cannot read ({e.strerror})") from None
-
-
-def _read_csv(
-    file: str, required: Sequence[str], optional: Sequence[str], context: str
-) -> dict[str, np.ndarray]:
-    """The ``required`` and present ``optional`` columns of a CSV file as float64 arrays.
-
-    Blank lines are skipped; an empty cell or ``nan`` is NaN; ``t`` (the first required
-    column) must be present in every row, finite and strictly increasing; no cell may be
-    infinite or text. A fast path (``np.loadtxt``) reads well-formed files; anything it cannot
-    read, or any problem in what it read, is read again cell by cell to report the first
-    problem with its line number.
-    """
-    text = _read_text(file)
-    header_line, _, body = text.partition("\n")
-    header = [name.strip() for name in next(csv.reader([header_line.rstrip("\r")]), [])]
-    if not any(header):
-        raise SessionError(f"{file}, line 1: expected a header row of column names, got none")
-    wanted = (*required, *(n for n in optional if n in header))
-    missing = [n for n in required if n not in header]
-    if missing:
-        more = f" and {len(missing) - 1} more" if len(missing) > 1 else ""
-        raise SessionError(f"{file}: missing column {missing[0]!r}{more} ({context})")
-    for name in wanted:
-        if header.count(name) > 1:
-            raise SessionError(f"{file}, line 1: column {name!r} appears more than once")
-    index = [header.index(n) for n in wanted]
-
-    values = _parse_fast(body, len(header), index)
-    if values is None or _first_problem(values, wanted) is not None:
-        values, lines = _parse_slow(file, body, header, wanted, index)
-        if not lines:
-            raise SessionError(f"{file}: no data rows after the header line")
-        problem = _first_problem(values, wanted)
-        if problem is not None:
-            row, message = problem
-            raise SessionError(f"{file}, line {lines[row]}{message}")
-    return {name: np.ascontiguousarray(values[:, j]) for j, name in enumerate(wanted)}
-
-
-def _parse_fast(body: str, n_cols: int, index: list[int]) -> np.ndarray | None:
-    """The wanted columns of the data rows via ``np.loadtxt``, or None if it cannot."""
-    if not body.strip() or '"' in body:
-        return None
-    # Empty cells -> "nan" (twice: ",,," overlaps); then a leading or trailing empty cell.
-    filled = body.replace(",,", ",nan,").replace(",,", ",nan,")
-    filled = filled.replace(",\n", ",nan\n").replace(",\r", ",nan\r").replace("\n,", "\nnan,")
-    if filled.startswith(","):
-        filled = "nan" + filled
-    if filled.endswith(","):
-        filled += "nan"
-    try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("error")
-            values = np.loadtxt(
-                io.StringIO(filled), delimiter=",", comments=None, dtype=np.float64, ndmin=2
-            )
-    except (ValueError, Warning):
-        return None
-    if values.shape[1] != n_cols:
-        return None
-    return values[:, index]
-
-
-def _parse_slow(
-    file: str, body: str, header: list[str], wanted: Sequence[str], index: list[int]
-) -> tuple[np.ndarray, list[int]]:
-    """Cell-by-cell parse of the data rows; raises on the first malformed row or cell.
-
-    Returns the (R, len(wanted)) values and the file line number of each row.
-    """
-    reader = csv.reader(io.StringIO(body))
-    n_cols = len(header)
-    rows: list[list[float]] = []
-    lines: list[int] = []
-    for cells in reader:
-        line = reader.line_num + 1  # + the header line
-        if not cells:
-            continue  # a blank line
-        if len(cells) != n_cols:
-            raise SessionError(
-                f"{file}, line {line}: {len(cells)} cells, expected {n_cols} as in the header"
-            )
-        try:
-            rows.append([_cell(cells[i]) for i in index])
-        except ValueError:
-            name, i = next((n, i) for n, i in zip(wanted, index) if not _is_cell(cells[i]))
-            raise SessionError(
-                f"{file}, line {line}, column {name!r}: expected a number (empty or nan for a "
-                f"missing reading), got {cells[i]!r}"
-            ) from None
-        lines.append(line)
-    values = np.array(rows, dtype=np.float64).reshape(len(rows), len(wanted))
-    return values, lines
-
-
-def _first_problem(values: np.ndarray, names: Sequence[str]) -> tuple[int, str] | None:
-    """The earliest (row index, message tail) of an infinite cell, a missing or unordered t."""
-    problems = []
-    inf = np.isinf(values)
-    if inf.any():
-        row, col = divmod(int(np.argmax(inf)), values.shape[1])
-        problems.append((row, (
-            f", column {names[col]!r}: expected a finite number (empty or nan for a missing "
-            f"reading), got {float(values[row, col])!r}"
-        )))
-    t = values[:, 0]
-    nan_t = np.isnan(t)
-    if nan_t.any():
-        row = int(np.argmax(nan_t))
-        problems.append((row, f", column {names[0]!r}: t is missing; every row needs its time (s)"))
-    unordered = np.diff(t) <= 0.0  # False next to a NaN: that row is reported as missing
-    if unordered.any():
-        row = int(np.argmax(unordered)) + 1
-        problems.append((row, (
-            f": t = {float(t[row])!r} is not after the previous row's t = "
-            f"{float(t[row - 1])!r}; t must be strictly increasing"
-        )))
-    return min(problems, default=None)
-
-
 # ---------------------------------------------------------------------- writing
 
 
@@ -545,6 +479,7 @@ def write_session(session: Session, path: str | os.PathLike, digits: int = 9) ->
         "mocap_time_offset_s": float(session.mocap_time_offset_s),
         "hall_models": session.hall_models,
         "description": session.description,
+        **(session.limits.to_meta() if session.limits is not None else {}),
         **session.extra_meta,
     }
     with open(os.path.join(folder, META_FILE), "w", encoding="utf-8") as f:
@@ -563,22 +498,6 @@ def write_session(session: Session, path: str | os.PathLike, digits: int = 9) ->
                    digits)
     elif os.path.exists(mocap_path):
         os.remove(mocap_path)
-
-
-def _write_csv(file: str, header: Sequence[str], t: np.ndarray, values: np.ndarray,
-               digits: int = 9) -> None:
-    # One %-format per row (formatting runs in C); "%r" of a Python float is the shortest
-    # string that reads back as the same float64. Only NaN prints as "nan" here, and no
-    # number contains "nan", so the replace turns exactly the NaN cells into empty ones.
-    if not 1 <= int(digits) <= 17:
-        raise ValueError(f"write_session: digits must be 1..17, got {digits}")
-    fmt = ",".join(["%r"] + [f"%.{int(digits)}g"] * values.shape[1])
-    rows = np.column_stack([np.asarray(t, dtype=np.float64), values]).tolist()
-    body = "\n".join([fmt % tuple(row) for row in rows]).replace("nan", "")
-    with open(file, "w", encoding="utf-8", newline="") as f:
-        f.write(",".join(header) + "\n")
-        if body:
-            f.write(body + "\n")
 
 
 # ---------------------------------------------------------------------- helpers
@@ -610,19 +529,6 @@ def _check_increasing(name: str, t: np.ndarray) -> None:
             f"{name}: expected strictly increasing times, got t[{k}] = {float(t[k])!r} "
             f"after t[{k - 1}] = {float(t[k - 1])!r}"
         )
-
-
-def _cell(text: str) -> float:
-    """One CSV cell: empty (or blank) is NaN, otherwise ``float`` (ValueError for text)."""
-    return float(text) if text.strip() else math.nan
-
-
-def _is_cell(text: str) -> bool:
-    try:
-        _cell(text)
-    except ValueError:
-        return False
-    return True
 
 
 def _is_number(x) -> bool:

@@ -8,6 +8,7 @@ Bad input ends with one line naming the file, column or value at fault, and exit
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import sys
@@ -48,10 +49,24 @@ class Progress:
             sys.stderr.write("\n")
 
 
-def _read_sessions(paths: Sequence[str], require_mocap: bool = False):
+def _read_sessions(paths: Sequence[str], require_mocap: bool = False, args=None):
     from ._session import read_session
 
-    return [read_session(p, require_mocap=require_mocap) for p in paths]
+    plausible = not getattr(args, "accept_implausible", False)
+    return [read_session(p, require_mocap=require_mocap, plausible=plausible) for p in paths]
+
+
+def _gaps(args):
+    """The gap policy of ``--gap`` and ``--on-gap`` (the same for every command)."""
+    from ._gaps import GapPolicy
+
+    return GapPolicy(gap_s=args.gap, on_gap=args.on_gap)
+
+
+def _warn(args, lines: Sequence[str]) -> None:
+    """Findings about the data on stderr (even with ``--json``: stdout stays JSON)."""
+    for line in lines:
+        print(f"kckf {args.verb}: warning: {line}", file=sys.stderr)
 
 
 def _check_methods(methods: Sequence[str]) -> list[str]:
@@ -87,34 +102,39 @@ def cmd_observability(args) -> int:
 
 
 def cmd_filter(args) -> int:
-    from ._report import write_estimates
+    from ._report import data_faults, estimate_faults, write_estimates
     from ._run import filter_sessions
 
     method = _check_methods([args.method])[0]
-    (session,) = _read_sessions([args.session])
+    (session,) = _read_sessions([args.session], args=args)
     params = _load_params(args, [session])
-    (est,) = filter_sessions([session], method, params)
+    _warn(args, data_faults([session], params, _gaps(args))[1])
+    (est,) = filter_sessions([session], method, params, gaps=_gaps(args))
+    _warn(args, estimate_faults([session], method, [est]))
     write_estimates(args.output, session, est)
-    _say(args, f"wrote {args.output}: {session.n_steps} rows of {method} estimates")
+    _say(args, f"wrote {args.output}: {session.n_steps} rows of {method} estimates "
+               f"({est.path} path)")
     return 0
 
 
 def cmd_evaluate(args) -> int:
     methods = _check_methods(args.method or ["kckf"])
-    sessions = _read_sessions(args.sessions, require_mocap=True)
+    sessions = _read_sessions(args.sessions, require_mocap=True, args=args)
     from ._run import common_robot
 
     robot = common_robot(sessions)
     params = _load_params(args, sessions)
     from ._report import evaluate_sessions, format_table
 
-    doc, angles = evaluate_sessions(sessions, methods, params, args.burn_in)
+    doc, angles = evaluate_sessions(sessions, methods, params, args.burn_in, _gaps(args))
+    _warn(args, doc["warnings"])
     if args.plot:
         from ._report import session_name
         from .plots import plot_session
 
         for i, s in enumerate(sessions):
-            plot_session(s, {m: angles[m][i] for m in methods}, args.plot, session_name(s.path))
+            plot_session(s, {m: angles[m][i] for m in methods}, args.plot, session_name(s.path),
+                         gaps=doc["gaps"].get(s.path, []))
         _say(args, f"figures in {args.plot}")
     if args.json:
         print(json.dumps(doc, indent=None))
@@ -155,11 +175,13 @@ def _params_for(args, robot, hall_models, what: str, missing: str = ""):
 def cmd_fit(args) -> int:
     from ._fit import FitConfig, FitInterrupted, fit, fit_info
     from ._params import save_params
+    from ._report import data_faults
     from ._run import common_robot
 
-    sessions = _read_sessions(args.sessions, require_mocap=True)
-    val = _read_sessions(args.val or [], require_mocap=True)
+    sessions = _read_sessions(args.sessions, require_mocap=True, args=args)
+    val = _read_sessions(args.val or [], require_mocap=True, args=args)
     common_robot(sessions + val)
+    _warn(args, data_faults(sessions + val, None, _gaps(args))[1])
     config = FitConfig(steps=args.steps, learning_rate=args.lr, hall_noise=args.noise,
                        freeze=tuple(args.freeze or ()), burn_in_s=args.burn_in,
                        batch_size=args.batch_size, seed=args.seed)
@@ -180,7 +202,7 @@ def cmd_fit(args) -> int:
 
     try:
         result = fit(sessions, val, config, init=init, checkpoint=ckpt, resume=args.resume,
-                     callback=on_step)
+                     callback=on_step, gaps=_gaps(args))
     except FitInterrupted as exc:
         bar.close()
         print(f"kckf fit: {exc}", file=sys.stderr)
@@ -215,16 +237,20 @@ def cmd_stream(args) -> int:
     method = _check_methods([args.method])[0]
     session = None
     if replay_path(args.source):
-        session = read_session(replay_path(args.source))
-    robot, hall_models = None, None
+        session = read_session(replay_path(args.source),
+                               plausible=not args.accept_implausible)
+    robot, hall_models, limits = None, None, None
     if args.meta:
-        robot, hall_models = read_meta(args.meta)
+        robot, hall_models, limits = read_meta(args.meta)
     elif session is not None:
-        robot, hall_models = session.robot, session.hall_models
+        robot, hall_models, limits = session.robot, session.hall_models, session.limits
     params = _params_for(args, robot, hall_models, "the stream",
                          "the robot layout is unknown: give --meta meta.json, --params FILE or "
                          "a replay://SESSION source")
-    sf = StreamingFilter(params, method, gap_s=args.gap, on_gap=args.on_gap)
+    if limits is not None:  # the recording's own statement about its hardware
+        params = dataclasses.replace(params, limits=limits)
+    gaps = _gaps(args)
+    sf = StreamingFilter(params, method, gap_s=gaps.gap_s, on_gap=gaps.on_gap)
     sf.warmup()  # compiled before the source opens: no early packet waits for XLA
     source = open_source(args.source, session, realtime=args.realtime)
     sink = open_sink(args.sink, flush=session is None or args.realtime)
@@ -242,11 +268,16 @@ def cmd_stream(args) -> int:
     print(f"kckf stream: listening on {source.description} (method {method}, "
           f"{jnp_name(params)}{extra})", file=sys.stderr, flush=True)
     try:
-        counts = run_stream(source, sink, sf, PacketParser(params.robot),
+        counts = run_stream(source, sink, sf, PacketParser(params.robot, limits=params.limits),
                             max_packets=args.max_packets, idle_timeout=args.idle_timeout,
                             should_stop=lambda: stop["now"])
     finally:
         source.close()
+    faulty = counts.pop("faulty", {})
+    if faulty:
+        _warn(args, ["faulty readings (not a number, infinite or outside the physical range: "
+                     f"{params.limits.describe()}) treated as missing: "
+                     + ", ".join(f"{k} x{v}" for k, v in faulty.items())])
     _say(args, "kckf stream: " + ", ".join(f"{k} {v}" for k, v in counts.items()))
     return 0
 
@@ -261,11 +292,14 @@ def cmd_export(args) -> int:
     from ._export import export_step
     from ._session import read_meta
 
-    robot, hall_models = read_meta(args.meta) if args.meta else (None, None)
+    robot, hall_models, limits = read_meta(args.meta) if args.meta else (None, None, None)
     params = _params_for(args, robot, hall_models, "meta.json",
                          "give --params FILE (fitted) or --meta meta.json (paper defaults)")
+    if limits is not None:
+        params = dataclasses.replace(params, limits=limits)
     method = _check_methods([args.method])[0]
-    n = export_step(params, args.output, method=method, baked=not args.pass_params)
+    n = export_step(params, args.output, method=method, baked=not args.pass_params,
+                    gaps=_gaps(args))
     _say(args, f"wrote {args.output} ({n} bytes): {method} step for joints "
                f"{params.robot.spec}, parameters {'passed' if args.pass_params else 'baked in'}; "
                "run it with kckf_jax/export_loader.py (imports only jax and numpy)")
@@ -350,6 +384,23 @@ def cmd_demo(args) -> int:
 
 
 # --------------------------------------------------------------------------- parser
+def _data_options(p: argparse.ArgumentParser, plausibility: bool = True) -> None:
+    """The options every command on recorded or live data shares: the gap policy and the
+    plausibility check."""
+    from ._gaps import GapPolicy
+
+    d = GapPolicy()
+    p.add_argument("--gap", type=float, default=d.gap_s,
+                   help=f"seconds between rows that count as a gap (default {d.gap_s:g})")
+    p.add_argument("--on-gap", choices=("predict", "restart"), default=d.on_gap,
+                   help="predict across a gap (default) or restart the filter after it")
+    if plausibility:
+        p.add_argument("--accept-implausible", action="store_true",
+                       help="read a session whose time step disagrees with sample_rate_hz or "
+                            "whose mocap angles exceed 2 pi (refused by default: a unit "
+                            "mistake)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     common = argparse.ArgumentParser(add_help=False)
     common.add_argument("--debug", action="store_true", help="show tracebacks on errors")
@@ -383,6 +434,7 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--method", default="kckf")
     f.add_argument("--params", help="fitted parameters (kckf fit)")
     f.add_argument("-o", "--output", required=True, help="estimates CSV to write")
+    _data_options(f)
     f.set_defaults(func=cmd_filter)
 
     e = sub.add_parser("evaluate", parents=[common], help="error figures against motion capture")
@@ -392,6 +444,7 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--json", action="store_true", help="JSON on stdout")
     e.add_argument("--plot", metavar="DIR", help="write Fig. 5/6-style plots to DIR")
     e.add_argument("--burn-in", type=float, default=0.0, help="seconds left out at the start")
+    _data_options(e)
     e.set_defaults(func=cmd_evaluate)
 
     t = sub.add_parser("fit", parents=[common],
@@ -413,6 +466,7 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--checkpoint", help="checkpoint file (default OUTPUT.ckpt)")
     t.add_argument("--resume", action="store_true",
                    help="continue an interrupted fit from its checkpoint")
+    _data_options(t)
     t.set_defaults(func=cmd_fit)
 
     r = sub.add_parser("stream", parents=[common], help="live filtering of sensor packets")
@@ -425,10 +479,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--max-packets", type=int, help="stop after this many packets")
     r.add_argument("--idle-timeout", type=float, help="stop after this many seconds of silence")
     r.add_argument("--realtime", action="store_true", help="replay at the recorded pace")
-    r.add_argument("--gap", type=float, default=0.5,
-                   help="seconds between packets that count as a gap (default 0.5)")
-    r.add_argument("--on-gap", choices=("predict", "restart"), default="predict",
-                   help="predict across a gap (default) or restart the filter")
+    _data_options(r)
     r.add_argument("--dtype", choices=("float32", "float64"), default="float32")
     r.set_defaults(func=cmd_stream)
 
@@ -441,6 +492,7 @@ def build_parser() -> argparse.ArgumentParser:
     x.add_argument("--pass-params", action="store_true",
                    help="take the parameters as an input instead of baking them in")
     x.add_argument("--dtype", choices=("float32", "float64"), default="float32")
+    _data_options(x, plausibility=False)
     x.set_defaults(func=cmd_export)
 
     xp = sub.add_parser("experiment", parents=[common],

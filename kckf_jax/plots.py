@@ -30,8 +30,17 @@ def _plt():
     return plt
 
 
+def _broken(t: np.ndarray, y: np.ndarray, rows: list[int]) -> tuple[np.ndarray, np.ndarray]:
+    """``t`` and ``y`` with a NaN before each of ``rows``, so a line is not drawn across a gap."""
+    if not rows:
+        return t, y
+    return (np.insert(np.asarray(t, np.float64), rows, np.nan),
+            np.insert(np.asarray(y, np.float64), rows, np.nan, axis=0))
+
+
 def plot_session(
     session: Session, angles: Mapping[str, np.ndarray], out_dir: str, name: str,
+    gaps: list[dict] = (),
 ) -> list[str]:
     """Estimates of every method against motion capture, one figure for the joints (Fig. 5
     style) and one for the torso angles (Fig. 6 style). Returns the files written.
@@ -41,12 +50,16 @@ def plot_session(
         angles: ``{method: (T, K) angles in rad}``; NaN columns are skipped.
         out_dir: folder to write into (created if needed).
         name: file name prefix.
+        gaps: the gaps of the sensor rows (``Gap.to_json()`` of ``kckf evaluate --json``):
+            shaded, and no line is drawn across them.
     """
     plt = _plt()
     os.makedirs(out_dir, exist_ok=True)
     robot = session.robot
-    t = session.t - session.t[0]
-    truth = session.truth()
+    t0 = session.t[0]
+    rows = [int(g["row"]) for g in gaps]
+    t, truth = _broken(session.t - t0, session.truth(), rows)
+    angles = {m: _broken(session.t - t0, a, rows)[1] for m, a in angles.items()}
     files = []
     groups = (("joints", list(range(robot.n_joint_axes))),
               ("torso", list(range(robot.n_joint_axes, robot.n_angles))))
@@ -64,6 +77,9 @@ def plot_session(
             ax.set_ylim(-1.6 * lim - 5, 1.6 * lim + 5)
             ax.set_ylabel(f"{robot.angle_names[k]} (deg)")
             ax.grid(alpha=0.3)
+            for i, g in enumerate(gaps):
+                ax.axvspan(g["t_s"] - t0, g["t_s"] - t0 + g["length_s"], color="0.85",
+                           label=f"gap ({g['action']})" if i == 0 else None)
         axes[0, 0].legend(loc="upper right", ncol=6, fontsize=8)
         axes[-1, 0].set_xlabel("time (s)")
         fig.tight_layout()

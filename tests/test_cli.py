@@ -49,10 +49,14 @@ def test_evaluate_json_layout(session, capsys):
     assert doc["sessions"] == [session]
     for m in ("kckf", "kf", "hall_l"):
         r = doc["methods"][m]
-        assert set(r) == {"rmse_deg", "mean_rmse_deg", "per_session", "path"}
+        assert set(r) == {"rmse_deg", "mean_rmse_deg", "per_session", "path", "steps_with_truth",
+                          "steps_scored", "skipped_updates"}
         assert r["path"] == "sequential"  # jittered time stamps, dropped readings
+        assert r["steps_scored"] == r["steps_with_truth"] and r["skipped_updates"] == 0
+        assert set(r["steps_scored"]) == set(r["rmse_deg"])
         assert r["mean_rmse_deg"] == pytest.approx(np.mean(list(r["rmse_deg"].values())))
         assert list(r["per_session"]) == [session]
+    assert doc["gaps"] == {} and doc["out_of_range"] == {} and doc["warnings"] == []
     assert "phi_x" in doc["methods"]["kckf"]["rmse_deg"]
     assert "phi_x" not in doc["methods"]["hall_l"]["rmse_deg"]
 

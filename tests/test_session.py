@@ -13,6 +13,7 @@ from kckf_jax import (
     Robot,
     Session,
     SessionError,
+    _csvio,
     _session,
     align_mocap,
     read_session,
@@ -255,7 +256,7 @@ def test_fast_path_reads_a_one_hour_session(tmp_path, monkeypatch):
     def no_slow_path(*args, **kwargs):
         raise AssertionError("a well-formed file should not need the cell-by-cell reader")
 
-    monkeypatch.setattr(_session, "_parse_slow", no_slow_path)
+    monkeypatch.setattr(_csvio, "_parse_slow", no_slow_path)
     s = read_session(folder)
     assert s.gyro.shape == (T, 15) and s.hall_v.shape == (T, 8)
     assert s.t[-1] == (T - 1) / 100.0
@@ -599,4 +600,4 @@ def test_session_truth_uses_offset_and_is_cached(tmp_path):
 def test_message_helpers():
     # ``_s`` prints seconds with a decimal point for the overlap message.
     assert _session._s(100) == "100.0" and _session._s(0.05) == "0.05"
-    assert math.isnan(_session._cell("  "))
+    assert math.isnan(_csvio._cell("  "))

@@ -358,3 +358,43 @@ def test_export_runs_without_kckf_jax(session, tmp_path, pass_params):
     got = np.array([[rec[n] for n in ROBOT.angle_names] for rec in recs])
     ref = batch_angles(session, np.arange(n), jnp.float32)
     assert np.max(np.abs(got - ref)) <= 1e-4
+
+
+def test_loader_and_stream_share_one_status_vocabulary(session, tmp_path):
+    """The same faulty packets through ``kckf stream``'s filter and the exported step's
+    loader: the same status for every one (and the same gap action)."""
+    from kckf_jax.cli import main
+
+    path = str(tmp_path / "s")
+    write_session(session, path)
+    exp = str(tmp_path / "step.jaxexport")
+    assert main(["export", "--meta", f"{path}/meta.json", "-o", exp, "--quiet"]) == 0
+    good = [json.loads(packet_bytes(session, i)) for i in range(6)]
+    t = [g["t"] for g in good]
+    packets = [json.dumps(good[0]), json.dumps(good[1] | {"gyro1_x": None}),
+               json.dumps(good[2] | {"hall1_x_l": float("nan")}),
+               json.dumps(good[3] | {"hall2_y_r": "high"}),
+               json.dumps(good[4] | {"hall1_x_r": 1e30}),
+               json.dumps(good[5] | {"gyro2_y": float("inf")}),
+               json.dumps({"t": t[2]}), json.dumps({"t": t[5]}),
+               json.dumps({"t": t[5] + 2.0, "hall1_x_l": 1.3}),
+               json.dumps({"t": t[5] + 2.01, "junk": 1}),
+               "not json", "[1]", json.dumps({"gyro1_x": 0.1}), json.dumps({"t": "soon"}),
+               json.dumps({"t": t[5] + 3.0, "x": "y" * 9000})]
+    sf = StreamingFilter(Params.paper_defaults(ROBOT, session.hall_models))
+    parser = PacketParser(ROBOT)
+    streamed = [sf.push(parser.parse(p.encode())) for p in packets]
+    loader = os.path.join(os.path.dirname(__file__), "..", "kckf_jax", "export_loader.py")
+    r = subprocess.run([sys.executable, loader, exp], input="\n".join(packets) + "\n",
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr[-2000:]
+    loaded = [json.loads(line) for line in r.stdout.splitlines()]
+    got = [(a["status"], a.get("gap")) for a in streamed]
+    assert got == [(b["status"], b.get("gap")) for b in loaded]
+    assert [g for g, _ in got] == ["ok", "ok", "ok", "masked", "masked", "masked",
+                                   "out_of_order", "out_of_order", "gap", "ok", "malformed",
+                                   "malformed", "missing_t", "bad_t", "oversized"]
+    for a, b in zip(streamed, loaded):
+        if a["status"] in USED:
+            for n in ROBOT.angle_names:
+                assert a[n] == pytest.approx(b[n], abs=1e-4)  # float64 against float32

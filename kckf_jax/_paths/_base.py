@@ -60,16 +60,30 @@ def is_traced(*trees) -> bool:
 
 
 # ---------------------------------------------------------------------------- regularity
-def readings_present(robot: Robot, gyro, hall_v, xp=jnp):
+def readings_present(params, gyro, hall_v, xp=jnp):
     """Per row (any leading axes): whether every used gyro reading (``Robot.used_gyro_index``)
-    is there, and whether every Hall reading is. NumPy (``xp=np``: one packet in the streaming
+    is there, and whether every Hall reading is; a reading outside ``params.limits`` counts
+    as missing (the kernel's ``plausible``). ``params``: anything with ``robot`` and
+    ``limits`` (``Params``). NumPy (``xp=np``: one packet in the streaming
     filter) or JAX (a recording, on the device)."""
-    used = xp.take(gyro, xp.asarray(robot.used_gyro_index), axis=-1)
+    gyro, hall_v = params.limits.mask(gyro, hall_v, xp)
+    used = xp.take(gyro, xp.asarray(params.robot.used_gyro_index), axis=-1)
     return xp.isfinite(used).all(axis=-1), xp.isfinite(hall_v).all(axis=-1)
 
 
+class _Layout(eqx.Module):
+    """The static part of ``Params`` the regularity check needs (hashable: a jit key)."""
+
+    robot: Robot = eqx.field(static=True)
+    limits: object = eqx.field(static=True)
+
+
+def _static(params: Params) -> _Layout:
+    return _Layout(params.robot, params.limits)
+
+
 @functools.partial(jax.jit, static_argnums=0)
-def _regularity(robot: Robot, dt: Float[Array, "*B T"], gyro: Float[Array, "*B T G"],
+def _regularity(layout: _Layout, dt: Float[Array, "*B T"], gyro: Float[Array, "*B T G"],
                 hall_v: Float[Array, "*B T M"]
                 ) -> tuple[Float[Array, ""], Float[Array, ""], Bool[Array, ""], Bool[Array, ""]]:
     """On the device, one small transfer back: the largest deviation of a time step (rows
@@ -77,11 +91,11 @@ def _regularity(robot: Robot, dt: Float[Array, "*B T"], gyro: Float[Array, "*B T
     gyro reading and every Hall reading is there."""
     dt2 = jnp.reshape(dt, (-1, dt.shape[-1]))
     first = dt2[0, 1]
-    gyro_ok, hall_ok = readings_present(robot, gyro, hall_v)
+    gyro_ok, hall_ok = readings_present(layout, gyro, hall_v)
     return jnp.max(jnp.abs(dt2[:, 1:] - first)), first, gyro_ok.all(), hall_ok.all()
 
 
-def regular_step(robot: Robot, series: SensorSeries) -> tuple[float | None, str | None]:
+def regular_step(params: Params, series: SensorSeries) -> tuple[float | None, str | None]:
     """The one regularity check: ``(step_s, None)`` when ``series`` (one recording ``T`` or a
     batch ``B T``) has one constant time step shared by every trial and every reading the
     filters use (``readings_present`` in every row); else ``(None, why)``. Traced inputs:
@@ -90,15 +104,16 @@ def regular_step(robot: Robot, series: SensorSeries) -> tuple[float | None, str 
         return None, None
     if np.ndim(series.dt) < 1 or np.shape(series.dt)[-1] < 2:
         return None, "fewer than two rows"
-    dev, first, gyro_ok, hall_ok = _regularity(robot, series.dt, series.gyro, series.hall_v)
+    dev, first, gyro_ok, hall_ok = _regularity(_static(params), series.dt, series.gyro,
+                                               series.hall_v)
     dev, first = float(dev), float(first)
     if not (dev <= STEP_TOL_S and first > 0):  # also false for a NaN step
         return None, ("the time step is not constant" if np.ndim(series.dt) == 1 else
                       "the time step is not one constant shared by every trial")
     if not bool(gyro_ok):
-        return None, "a gyro reading is missing"
+        return None, "a gyro reading is missing or out of range"
     if not bool(hall_ok):
-        return None, "a Hall reading is missing"
+        return None, "a Hall reading is missing or out of range"
     return first, None
 
 

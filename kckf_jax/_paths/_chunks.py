@@ -166,14 +166,17 @@ def raw_readings(coeffs, gyro: Float[Array, "B T G"], hall_v: Float[Array, "B T 
     return jnp.concatenate([g, hall_angle(h, *coeffs)], axis=2)
 
 
-def _chunk_readings(plan: ChunkPlan, coeffs, gyro, hall_v, first, n: int):
+def _chunk_readings(plan: ChunkPlan, coeffs, gyro: Float[Array, "B T G"],
+                    hall_v: Float[Array, "B T M"], first, n: int) -> Float[Array, "B C Y"]:
     """Chunk rows ``first .. first + n`` (counted from ``plan.start``) as chunks:
     ``(B, n / chunk_rows, chunk_rows I)``."""
     x = raw_readings(coeffs, gyro, hall_v, plan.used, plan.start + first, n)
     return x.reshape(x.shape[0], n // plan.chunk_rows, -1)
 
 
-def _chunk_forward(plan: ChunkPlan, GS, E, Phi, s0, coeffs, gyro, hall_v, outs,
+def _chunk_forward(plan: ChunkPlan, GS: Float[Array, "X O"], E: Float[Array, "Y Nq"],
+                   Phi: Float[Array, "Nq Nq"], s0: Float[Array, "B Nq"], coeffs,
+                   gyro: Float[Array, "B T G"], hall_v: Float[Array, "B T M"], outs,
                    keep: bool = False):
     """The chunks in one pass over the readings: per block of rows, each chunk's part of the
     state entering the next (``x @ E``), the states entering the block's chunks from the one

@@ -9,13 +9,14 @@ the associative scan's small batched products are slow there.
 
 from __future__ import annotations
 
+import dataclasses
 from typing import ClassVar
 
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from .._kernel import Estimate, FilterState, SensorSeries, block_estimate
+from .._kernel import Estimate, FilterState, SensorSeries, block_estimate, plausible
 from .._model import FILTER_METHODS, structure
 from .._params import Params
 from ._affine import covariance_phase, series_inputs
@@ -43,16 +44,20 @@ def _one_trial(params: Params, series: SensorSeries, method: str, state: FilterS
                ) -> tuple[FilterState, Estimate]:
     st = structure(params.robot, method)
     dtype = state.z.dtype
-    series = jax.tree_util.tree_map(lambda x: jnp.asarray(x).astype(dtype), series)
-    (dt, rates, noise, hb, rb, vb), held = series_inputs(params, st, series, state.gyro_hold)
-    P_last, (Ps, As, Grs, Ghs) = covariance_phase(params, st, state.P,
-                                                  (dt, rates, noise, hb, rb, vb))
+    series = plausible(params, jax.tree_util.tree_map(lambda x: jnp.asarray(x).astype(dtype),
+                                                      series))
+    rows, _ = series_inputs(params, st, series, state.gyro_hold)
+    P_last, (Ps, As, Grs, Ghs, ok) = covariance_phase(params, st, state.P, rows)
+    # A skipped row keeps the whole state, its gyro hold included: the rates of the rows after
+    # it come from the holds without its readings (the covariance does not depend on them).
+    kept = SensorSeries(series.dt, jnp.where(ok[:, None], series.gyro, jnp.nan), series.hall_v)
+    (_, rates, _, hb, _, _), held = series_inputs(params, st, kept, state.gyro_hold)
     # c_k = Gr_k r_k + Gh_k h_k, with the entering state folded into the first row.
     c = (jnp.einsum("kpaj,kpj->kpa", Grs, rates) + jnp.einsum("kpaj,kpj->kpa", Ghs, hb))
     c = c.at[0].add(jnp.einsum("pab,pb->pa", As[0], state.z))
     z = _compose(As, c)
     est = jax.vmap(lambda zk, Pk: block_estimate(st, zk, Pk))(z, Ps)
-    return FilterState(z[-1], P_last, held[-1]), est
+    return FilterState(z[-1], P_last, held[-1]), dataclasses.replace(est, skipped=~ok)
 
 
 def _compose(As: Float[Array, "T Nb Nz Nz"], c: Float[Array, "T Nb Nz"]

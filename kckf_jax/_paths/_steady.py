@@ -25,7 +25,15 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from .._kernel import Estimate, FilterState, SensorSeries, block_estimate, block_update, init_state
+from .._kernel import (
+    Estimate,
+    FilterState,
+    SensorSeries,
+    block_estimate,
+    block_update,
+    init_state,
+    plausible,
+)
 from .._model import FILTER_METHODS, Structure, structure
 from .._params import Params
 from ._affine import (
@@ -105,7 +113,7 @@ class Steady(AbstractPath):
         T = np.shape(series.dt)[-1] if np.ndim(series.dt) else 0
         if T <= self.min_rows:
             return f"{T} rows, not more than {self.min_rows}"
-        step_s, why = regular_step(params.robot, series)
+        step_s, why = regular_step(params, series)
         if why is not None:
             return why
         if step_s is None or is_traced(params, state):
@@ -134,13 +142,14 @@ class Steady(AbstractPath):
         dtype = state.z.dtype
         n_head = self.head_rows(dtype)
         st = structure(params.robot, method)
-        series = jax.tree_util.tree_map(lambda x: jnp.asarray(x).astype(dtype), series)
+        series = plausible(params, jax.tree_util.tree_map(
+            lambda x: jnp.asarray(x).astype(dtype), series))
         T = series.dt.shape[1]
         # Trial 0's time steps, masks and noise stand for every trial's (a regular batch).
         trial0 = jax.tree_util.tree_map(lambda x: x[0, : n_head + 1], series)
         rows, _ = series_inputs(params, st, trial0, state.gyro_hold[0])
         head = jax.tree_util.tree_map(lambda x: x[:n_head], rows)
-        P_head, (Ps, As, Grs, Ghs) = covariance_phase(params, st, state.P[0], head)
+        P_head, (Ps, As, Grs, Ghs, ok) = covariance_phase(params, st, state.P[0], head)
         last = jax.tree_util.tree_map(lambda x: x[n_head], rows)
         P_ss, A, Gr, Gh = step_maps(params, st, P_head, last)
         zeros = jnp.zeros(P_ss.shape[:2], dtype)
@@ -150,7 +159,10 @@ class Steady(AbstractPath):
                                      (A, Gr, Gh), (As, Grs, Ghs))
         std = jnp.concatenate([std_head, jnp.broadcast_to(std_tail, (T - n_head,)
                                                           + std_tail.shape)])
-        est = Estimate(angles, jnp.broadcast_to(std, angles.shape), bias)
+        # Regular data never skip a row (the convergence check ran these rows' covariance).
+        skipped = jnp.broadcast_to(jnp.concatenate([~ok, jnp.zeros(T - n_head, bool)]),
+                                   angles.shape[:2])
+        est = Estimate(angles, jnp.broadcast_to(std, angles.shape), bias, skipped)
         held = jax.vmap(last_finite)(series.gyro, state.gyro_hold)
         return FilterState(z, jnp.broadcast_to(P_ss, state.P.shape), held), est
 

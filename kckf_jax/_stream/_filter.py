@@ -10,6 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._gaps import GapPolicy
 from .._hall import hall_exponentials
 from .._kernel import FilterState, SensorSeries, check_method, estimated, init_state, step
 from .._model import structure
@@ -112,11 +113,11 @@ class StreamingFilter:
     Args:
         params: filter parameters (their dtype sets the precision).
         method: one of ``METHODS``.
-        gap_s: a time step longer than this is a gap (status ``gap``).
-        on_gap: ``"predict"`` (step across the gap: the covariance grows with it) or
-            ``"restart"`` (start again from the initial state at this packet).
-        max_predict_s: a gap longer than this restarts even with ``on_gap="predict"`` (as
-            does a gap whose prediction overflows).
+        gap_s, on_gap, max_predict_s: the gap policy, as the batch filter's (``GapPolicy``):
+            a time step longer than ``gap_s`` is a gap (status ``gap``), predicted across
+            (``"predict"``: the covariance grows with it) or restarted from the initial state
+            at this packet (``"restart"``, or a gap longer than ``max_predict_s``, or one
+            whose prediction overflows).
         host_path: allow the host path (below).
         steady: the ``Steady`` path whose constants the host path follows (its head length
             and convergence tolerance).
@@ -146,18 +147,14 @@ class StreamingFilter:
                  on_gap: str = "predict", max_predict_s: float = 3600.0,
                  host_path: bool = True, steady: Steady = Steady()):
         check_method(method)
-        if on_gap not in ("predict", "restart"):
-            raise ValueError(f"on_gap must be 'predict' or 'restart', got {on_gap!r}")
-        if not gap_s > 0:
-            raise ValueError(f"gap_s must be positive, got {gap_s}")
         self.params, self.method, self.robot = params, method, params.robot
-        self.gap_s, self.on_gap, self.max_predict_s = float(gap_s), on_gap, float(max_predict_s)
+        # The batch filter's gap policy (the same threshold and options: GapPolicy).
+        self.gaps = GapPolicy(float(gap_s), on_gap, float(max_predict_s))
         self.dtype = params.log_q.dtype
         self._G, self._M = 3 * self.robot.n_links, self.robot.n_hall
         self._K = self.robot.n_angles
         self.names = self.robot.angle_names
         self._estimated = estimated(self.robot, method)
-        self._all_estimated = bool(self._estimated.all())
         self._fn, self._flatten, self._unflatten = _compiled_step(params, method)
         self._x = np.empty(1 + self._G + self._M, dtype=self.dtype)
         self._initial = jax.device_put(self._flatten(init_state(params, method)))
@@ -220,7 +217,7 @@ class StreamingFilter:
         check, packet by packet) and, from the steady path's head length on, every
         ``HOST_CHECK_EVERY`` compare the covariance over one step; once it has converged,
         switch to the host path."""
-        gyro_ok, hall_ok = readings_present(self.robot, pkt.gyro, pkt.hall_v, np)
+        gyro_ok, hall_ok = readings_present(self.params, pkt.gyro, pkt.hall_v, np)
         complete = dt > 0 and bool(gyro_ok) and bool(hall_ok)
         if complete and self._last_dt is not None and abs(dt - self._last_dt) <= STEP_TOL_S:
             self._regular += 1
@@ -251,11 +248,11 @@ class StreamingFilter:
                                 f"t = {pkt.t!r} is not after the previous t = {self.t_prev!r}")
         status, note, extra = pkt.status, pkt.note, {}
         dt = 0.0 if self.t_prev is None else pkt.t - self.t_prev  # float64 on the host
-        if dt > self.gap_s:
+        action = self.gaps.action(dt)
+        if action is not None:
             status = "gap"
-            predict = self.on_gap == "predict" and dt <= self.max_predict_s
-            extra = {"gap": "predict" if predict else "restart", "gap_s": dt}
-            if not predict:
+            extra = {"gap": action, "gap_s": dt}
+            if action == "restart":
                 self.reset()
                 dt = 0.0
         out = self._run(dt, pkt)
@@ -296,10 +293,10 @@ class StreamingFilter:
         rec: dict = {"t": t}
         if angles is not None:
             values = angles.tolist()
-            if self._all_estimated:
-                rec.update(zip(self.names, values))
-            else:
-                rec.update((n, a) for n, a, e in zip(self.names, values, self._estimated) if e)
+            # An angle not estimated yet (a Hall baseline before its first reading) is left
+            # out, as one the method never estimates.
+            rec.update((n, a) for n, a, e in zip(self.names, values, self._estimated)
+                       if e and math.isfinite(a))
         rec["status"] = status
         if note:
             rec["note"] = note
@@ -331,11 +328,10 @@ def stream_step_fn(params: Params, method: str):
     def fn(flat, x, p=params):
         state = unflatten(flat)
         inputs = SensorSeries(x[0], x[1:1 + G], x[1 + G:])
-        new, est = step(p, state, inputs, method)
-        new_flat = flatten(new)
-        ok = jnp.all(jnp.isfinite(new_flat))
+        new, est = step(p, state, inputs, method)  # a non-finite update keeps the state
+        ok = ~est.skipped
         out = jnp.concatenate([est.angles, est.angle_std, ok[None].astype(x.dtype)])
-        return jnp.where(ok, new_flat, flat), out
+        return flatten(new), out
 
     return fn, flatten, unflatten
 

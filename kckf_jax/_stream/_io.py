@@ -212,10 +212,12 @@ def run_stream(source: Source, sink, sf: StreamingFilter, parser: PacketParser, 
                should_stop: Callable[[], bool] = lambda: False,
                poll_s: float = 0.1) -> dict:
     """Read, filter and write until the source ends, ``max_packets`` packets were read,
-    nothing arrived for ``idle_timeout`` seconds, or ``should_stop()``. Returns counts."""
+    nothing arrived for ``idle_timeout`` seconds, or ``should_stop()``. Returns the count of
+    packets, of each status, and (``"faulty"``) of each column's faulty readings."""
     import gc
 
     counts = {s: 0 for s in STATUSES}
+    faulty: dict[str, int] = {}
     n = 0
     gc.freeze()  # everything allocated so far is long-lived: keep it out of GC pauses
     last = time.monotonic()
@@ -236,10 +238,15 @@ def run_stream(source: Source, sink, sf: StreamingFilter, parser: PacketParser, 
         if isinstance(item, Oversized):
             pkt = parser.empty("oversized", f"{item.n_bytes} bytes, limit {parser.max_bytes}")
         else:
-            pkt = item if isinstance(item, Packet) else parser.parse(item)
+            pkt = parser.check(item) if isinstance(item, Packet) else parser.parse(item)
+        for name in pkt.faulty:
+            faulty[name] = faulty.get(name, 0) + 1
         rec = sf.push(pkt)
         counts[rec["status"]] += 1
         sink.write(rec)
     sink.close()
-    return {"packets": n, **{k: v for k, v in counts.items() if v}}
+    out = {"packets": n, **{k: v for k, v in counts.items() if v}}
+    if faulty:
+        out["faulty"] = faulty
+    return out
 

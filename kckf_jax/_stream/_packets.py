@@ -14,32 +14,35 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .._limits import SensorLimits
 from .._robot import Robot
 
-#: Every ``status`` an output line can carry. Used packets: ``ok``; ``masked`` (some readings
-#: were unusable and treated as missing, ``note`` says which); ``gap`` (time jumped by more
-#: than the gap limit; ``gap`` says whether the filter predicted across it or restarted).
-#: Skipped packets (the state is unchanged): ``malformed`` (not UTF-8 JSON, not an object),
-#: ``oversized``, ``missing_t``, ``bad_t`` (not a finite number), ``out_of_order`` (``t`` not
-#: after the previous packet's), ``rejected`` (the update was not finite; never seen in tests).
+#: Every ``status`` an output line can carry (``kckf stream`` and ``export_loader.py`` alike).
+#: Used packets: ``ok`` (absent readings, a missing key, ``null`` or NaN, are missing
+#: readings, as an empty cell of ``sensors.csv``); ``masked`` (some readings were faulty: not
+#: a number, infinite, or outside the physical range (``SensorLimits``), and were treated as
+#: missing, ``note`` names them); ``gap`` (time jumped by more than the gap limit; ``gap``
+#: says whether the filter predicted across it or restarted). Skipped packets (the state is
+#: unchanged): ``malformed`` (not UTF-8 JSON, not an object), ``oversized``, ``missing_t``,
+#: ``bad_t`` (not a finite number), ``out_of_order`` (``t`` not after the previous packet's),
+#: ``rejected`` (the update was not finite).
 STATUSES = ("ok", "masked", "gap", "malformed", "oversized", "missing_t", "bad_t",
             "out_of_order", "rejected")
 USED = ("ok", "masked", "gap")
-#: Plausibility limits of a reading: beyond them it is treated as missing (``masked``).
-MAX_RATE_RAD_S = 100.0  # the LSM6DSO's widest range is 2000 dps = 35 rad/s
-HALL_V_RANGE = (-1.0, 10.0)
 MAX_PACKET_BYTES = 8192
 
 
 @dataclass
 class Packet:
-    """One parsed packet: time (s, float64), readings (NaN = missing), status, note."""
+    """One parsed packet: time (s, float64), readings (NaN = missing), status, note, and the
+    columns whose readings were faulty (``masked``)."""
 
     t: float | None
     gyro: np.ndarray
     hall_v: np.ndarray
     status: str
     note: str = ""
+    faulty: tuple[str, ...] = ()
 
 
 class PacketParser:
@@ -53,15 +56,18 @@ class PacketParser:
         'malformed'
     """
 
-    def __init__(self, robot: Robot, max_bytes: int = MAX_PACKET_BYTES):
+    def __init__(self, robot: Robot, max_bytes: int = MAX_PACKET_BYTES,
+                 limits: SensorLimits = SensorLimits()):
         self.robot = robot
         self.max_bytes = max_bytes
+        self.limits = limits
         self._names = robot.gyro_names + robot.hall_names
         self._slots = set(self._names)
         self._G, self._M = len(robot.gyro_names), robot.n_hall
-        # Plausible range of each reading: |rate| <= MAX_RATE_RAD_S, V within HALL_V_RANGE.
-        self._lo = np.r_[np.full(self._G, -MAX_RATE_RAD_S), np.full(self._M, HALL_V_RANGE[0])]
-        self._hi = np.r_[np.full(self._G, MAX_RATE_RAD_S), np.full(self._M, HALL_V_RANGE[1])]
+        # The physical range of each reading (the kernel masks the same ones: SensorLimits).
+        g, (lo, hi) = limits.gyro_rad_s, limits.hall_v
+        self._lo = np.r_[np.full(self._G, -g), np.full(self._M, lo)]
+        self._hi = np.r_[np.full(self._G, g), np.full(self._M, hi)]
 
     def empty(self, status: str, note: str = "", t: float | None = None) -> Packet:
         return Packet(t, np.full(self._G, np.nan), np.full(self._M, np.nan), status, note)
@@ -96,33 +102,54 @@ class PacketParser:
             problems = []
         except (TypeError, ValueError, OverflowError):
             arr, problems = self._slow_values(values)
+        extra = ""
+        if len(obj) - 1 > sum(1 for name in self._names if name in obj):
+            unknown = [k for k in obj if k != "t" and k not in self._slots]
+            extra = "ignored unknown key(s) " + ", ".join(repr(k[:30]) for k in unknown[:4])
+        return self._finish(pkt, arr, problems, extra)
+
+    def check(self, pkt: Packet) -> Packet:
+        """A packet that did not come through ``parse`` (``replay://`` rows) validated the
+        same way: its faulty readings (infinite, outside the physical range) masked."""
+        if pkt.status not in ("ok", "masked"):
+            return pkt
+        arr = np.r_[pkt.gyro, pkt.hall_v].astype(np.float64)
+        out = self.empty("ok", t=pkt.t)
+        return self._finish(out, arr, [], pkt.note, list(pkt.faulty))
+
+    def _finish(self, pkt: Packet, arr: np.ndarray, problems: list[tuple[int, str]],
+                extra: str = "", faulty: list[str] | None = None) -> Packet:
+        """Mask the readings outside the physical range (absent ones, NaN, are missing and
+        fine), fill ``pkt`` and set its status and note."""
         bad = ~(np.isnan(arr) | ((arr >= self._lo) & (arr <= self._hi)))
-        if bad.any():
-            problems += [f"{self._names[i]} = {arr[i]} out of range" for i in np.flatnonzero(bad)]
-            arr[bad] = np.nan
+        problems = list(problems) + [(i, f"{self._names[i]} = {arr[i]:.6g} out of range")
+                                     for i in np.flatnonzero(bad)]
+        arr[bad] = np.nan
         pkt.gyro[:] = arr[: self._G]
         pkt.hall_v[:] = arr[self._G:]
         notes = []
         if problems:
             pkt.status = "masked"
-            notes.append("treated as missing: " + "; ".join(problems[:4]))
-        if len(obj) - 1 > sum(1 for name in self._names if name in obj):
-            unknown = [k for k in obj if k != "t" and k not in self._slots]
-            notes.append("ignored unknown key(s) " + ", ".join(repr(k[:30]) for k in unknown[:4]))
+            problems.sort()
+            notes.append("treated as missing: " + "; ".join(p for _, p in problems[:4]))
+            pkt.faulty = tuple(dict.fromkeys((faulty or []) + [self._names[i]
+                                                               for i, _ in problems]))
+        if extra:
+            notes.append(extra)
         pkt.note = " | ".join(notes)
         return pkt
 
-    def _slow_values(self, values: list) -> tuple[np.ndarray, list[str]]:
+    def _slow_values(self, values: list) -> tuple[np.ndarray, list[tuple[int, str]]]:
         arr = np.full(len(values), np.nan)
         problems = []
         for i, v in enumerate(values):
             if v is None:
                 continue
             if isinstance(v, bool) or not isinstance(v, int | float):
-                problems.append(f"{self._names[i]} is not a number")
+                problems.append((i, f"{self._names[i]} is not a number"))
                 continue
             try:
                 arr[i] = float(v)
             except OverflowError:
-                problems.append(f"{self._names[i]} is too large")
+                problems.append((i, f"{self._names[i]} is too large"))
         return arr, problems

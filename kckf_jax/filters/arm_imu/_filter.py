@@ -86,6 +86,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from ..._kalman import coordinate_update, symmetrise
+from ..._kernel import pad_trials
 
 DEG = np.pi / 180.0
 GRAVITY_MPS2 = 9.81
@@ -568,21 +569,6 @@ def arm_imu_series(
 
 
 def pad_arm_imu(series: list[ArmImuSeries], length: int | None = None) -> ArmImuSeries:
-    """Stack trials of uneven length into one batch; padding rows are no-op steps."""
-    if not series:
-        raise ValueError("pad_arm_imu: no trials given")
-    T = max(int(np.shape(s.dt)[0]) for s in series) if length is None else length
-
-    def pad(x, fill):
-        x = np.asarray(x)
-        if x.shape[0] > T:
-            raise ValueError(f"pad_arm_imu: a trial has {x.shape[0]} rows, more than {T}")
-        return np.pad(x, [(0, T - x.shape[0])] + [(0, 0)] * (x.ndim - 1), constant_values=fill)
-
-    return ArmImuSeries(
-        dt=np.stack([pad(s.dt, 0.0) for s in series]),
-        exo_pos=np.stack([pad(s.exo_pos, np.nan) for s in series]),
-        exo_rot=np.stack([pad(s.exo_rot, np.nan) for s in series]),
-        imu_acc=np.stack([pad(s.imu_acc, np.nan) for s in series]),
-        imu_gyro=np.stack([pad(s.imu_gyro, np.nan) for s in series]),
-    )
+    """Stack trials of uneven length into one batch; padding rows are no-op steps
+    (``kckf_jax._kernel.pad_trials``)."""
+    return pad_trials(series, length, "pad_arm_imu")
