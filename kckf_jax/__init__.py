@@ -11,7 +11,7 @@ The public API (everything else lives in private modules; docs/architecture.md m
   ``filter_sessions`` (recorded sessions), ``session_series``, ``session_params``,
   ``choose_path`` and ``PathChoice`` (which path runs, and why);
 * the paths (how the same estimates are computed): ``AbstractPath``, ``Sequential``,
-  ``Steady``, ``Parallel``, ``Auto``;
+  ``Steady``, ``Lanes``, ``Parallel``, ``Auto``;
 * the Hall model (Eq. 1; coefficients in rad): ``hall_angle``, ``hall_slope``,
   ``hall_voltage``;
 * sessions: ``Session``, ``SessionError``, ``read_session``, ``write_session``,
@@ -59,6 +59,7 @@ from ._params import params_to_dict as params_to_dict
 from ._params import save_params as save_params
 from ._paths import AbstractPath as AbstractPath
 from ._paths import Auto as Auto
+from ._paths import Lanes as Lanes
 from ._paths import Parallel as Parallel
 from ._paths import PathChoice as PathChoice
 from ._paths import Sequential as Sequential

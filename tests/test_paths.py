@@ -16,6 +16,7 @@ import pytest
 
 from kckf_jax import (
     Auto,
+    Lanes,
     Params,
     Robot,
     SensorSeries,
@@ -233,3 +234,43 @@ def test_unknown_path():
         run_filter(Params.paper_defaults(robot), regular(robot, 1, 10)[1], path="fast")
     with pytest.raises(ValueError, match="Steady.head_rows_float64"):
         Steady(min_rows=100, head_rows_float32=50, head_rows_float64=200)
+
+
+@pytest.mark.parametrize("spec", ["x,y,x,y", "xz,y,xyz"])
+def test_lanes_equal_sequential_on_recorded_like_data(spec):
+    """Jittered time steps, 5 % missing readings per channel, the voltage noise model, padded
+    trials of uneven length and one update that overflows: the lanes path equals the
+    sequential one (1e-9 rad in float64, final states and skipped steps included; 1e-4 rad in
+    float32), and Auto takes it for a batch."""
+    robot = Robot.from_spec(spec)
+    trials = []
+    for seed, n in ((1, 300), (2, 257), (3, 280), (4, 300), (5, 211), (6, 300), (7, 290),
+                    (8, 300)):
+        s = simulate(robot, "human", seed=seed, duration_s=n / 100.0, drop_prob=0.05)
+        trials.append(SensorSeries(s.dt(), s.gyro, s.hall_v))
+    plain = pad_series(trials)
+    dt = np.asarray(plain.dt).copy()
+    dt[2, 100] = 1e200  # an overflowing prediction: skipped, the state kept
+    batch = SensorSeries(dt, plain.gyro, plain.hall_v)
+    p64 = Params.from_physical(robot, hall_models=s.hall_models, hall_noise="voltage",
+                               dtype=jnp.float64)
+    assert choose_path(p64, batch, "kckf").path == Lanes()
+    ref = filter_batch(p64, batch, "kckf", path="sequential")
+    got = filter_batch(p64, batch, "kckf", path="lanes")
+    assert got.path == "lanes"
+    close((got.angles, got.bias), (ref.angles, ref.bias), 1e-9)
+    close(got.angle_std, ref.angle_std, 1e-11, 1e-8)
+    np.testing.assert_array_equal(np.asarray(got.skipped), np.asarray(ref.skipped))
+    assert np.asarray(got.skipped)[2, 100] and np.asarray(got.skipped).sum() == 1
+    p32 = p64.astype(jnp.float32)
+    b32 = jax.tree_util.tree_map(lambda x: jnp.asarray(x, jnp.float32), plain)
+    ref = filter_batch(p32, b32, "kckf", path="sequential")
+    est = filter_batch(p32, b32, "kckf", path="lanes")
+    close(est.angles, ref.angles, 1e-4)  # float32's own rounding, amplified early on
+    one = SensorSeries(batch.dt[2], batch.gyro[2], batch.hall_v[2])
+    (f_ref, _), (f_got, _) = (run_filter(p64, one, "kckf", path=p) for p in ("sequential",
+                                                                            "lanes"))
+    close((f_got.z, f_got.P, f_got.gyro_hold), (f_ref.z, f_ref.P, f_ref.gyro_hold), 1e-9)
+    _, one_ref = run_filter(p64, trials[0], "kf", path="sequential")
+    one = filter_batch(p64, stack([trials[0]] * 2), "kf", path="lanes")
+    close(one.angles[0], one_ref.angles, 1e-9)

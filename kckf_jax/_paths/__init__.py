@@ -6,6 +6,8 @@
 * ``Steady``: the converged filter's constant map (regular recordings), built from the affine
   maps of a step (``_affine.py``), a scan of per-row maps (``_row_scan.py``) and chunks of
   matrix products (``_chunks.py``), each reverse mode beside its forward;
+* ``Lanes``: the kernel's arithmetic with the trials as lanes (batches of recorded data:
+  irregular time steps, missing readings, the voltage noise model);
 * ``Parallel``: covariance phase, then the mean by associative scan (accelerators);
 * ``Auto``: the policy.
 
@@ -22,16 +24,18 @@ from ._base import is_traced as is_traced
 from ._base import readings_present as readings_present
 from ._base import regular_step as regular_step
 from ._base import relative_change as relative_change
+from ._lanes import Lanes as Lanes
 from ._parallel import Parallel as Parallel
 from ._sequential import Sequential as Sequential
 from ._steady import Steady as Steady
 
-PATHS = {"auto": Auto, "sequential": Sequential, "steady": Steady, "parallel": Parallel}
+PATHS = {"auto": Auto, "sequential": Sequential, "steady": Steady, "lanes": Lanes,
+         "parallel": Parallel}
 
 
 def as_path(path: str | AbstractPath) -> AbstractPath:
-    """A path object from a name (``"auto"``, ``"sequential"``, ``"steady"``, ``"parallel"``)
-    or a path object itself."""
+    """A path object from a name (``"auto"``, ``"sequential"``, ``"steady"``, ``"lanes"``,
+    ``"parallel"``) or a path object itself."""
     if isinstance(path, AbstractPath):
         return path
     if path not in PATHS:

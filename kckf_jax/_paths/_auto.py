@@ -6,10 +6,12 @@ from __future__ import annotations
 from typing import ClassVar, NamedTuple
 
 import jax
+import numpy as np
 
 from .._kernel import Estimate, FilterState, SensorSeries
 from .._params import Params
 from ._base import AbstractPath, is_traced
+from ._lanes import Lanes
 from ._parallel import Parallel
 from ._sequential import Sequential
 from ._steady import Steady
@@ -24,7 +26,9 @@ class PathChoice(NamedTuple):
 
 class Auto(AbstractPath):
     """The fastest path that applies: ``Steady`` on a regular recording whose covariance
-    converges, else ``Parallel`` on an accelerator and ``Sequential`` on a CPU.
+    converges; else, for a Kalman filter, ``Lanes`` for a batch of at least
+    ``lanes.min_trials`` trials; else ``Parallel`` on an accelerator and ``Sequential`` on a
+    CPU.
 
     The choice is made on concrete inputs before anything is traced (``run_filter``,
     ``filter_batch``, ``filter_sessions`` and the fitting loss all resolve ``Auto`` first).
@@ -34,11 +38,13 @@ class Auto(AbstractPath):
 
     Attributes:
         steady: the ``Steady`` path to try (its constants).
+        lanes: the ``Lanes`` path to try (its constants).
         sequential: the ``Sequential`` path to fall back on (its remat chunk).
     """
 
     name: ClassVar[str] = "auto"
     steady: Steady = Steady()
+    lanes: Lanes = Lanes()
     sequential: Sequential = Sequential()
 
     def select(self, params: Params, series: SensorSeries, method: str,
@@ -52,6 +58,12 @@ class Auto(AbstractPath):
             if why is None:
                 return PathChoice(self.steady, passed)
             passed["steady"] = why
+        n_trials = np.shape(series.dt)[0] if np.ndim(series.dt) > 1 else 1
+        why = self.lanes.applies(params, series, method, state)
+        if why is None and n_trials >= self.lanes.min_trials:
+            return PathChoice(self.lanes, passed)
+        passed["lanes"] = why or (f"{n_trials} trial(s), fewer than {self.lanes.min_trials}: "
+                                  "lanes pay for batches")
         if jax.default_backend() != "cpu" and Parallel().applies(params, series, method) is None:
             return PathChoice(Parallel(), passed)
         passed["parallel"] = "slower than the sequential path on a CPU"
