@@ -160,18 +160,19 @@ def lane_scan(params: Params, st: Structure, z0: Float[Array, "B Nb Nz"],
     nz = st.n_z
     tri = _tri(nz)
     plus, minus = robot.rate_pairs
-    used = robot.used_gyro_index
+    # Every gyro channel is held (the final state's hold is the kernel's), the used ones drive.
+    used = np.arange(3 * robot.n_links)
     col = {int(c): i for i, c in enumerate(used)}
-    # Per block coordinate: which used gyro columns make its rate (``rate_map``'s +1 and -1).
+    # Per block coordinate: which gyro columns make its rate (``rate_map``'s +1 and -1).
     rate_cols = [[(col[int(plus[k])], col[int(minus[k])]) if k >= 0 else None
                   for k in st.angle_index[:, i]] for i in range(st.m + 1)]
     noise, hb, rb, vb = row_inputs(params, st, jnp.moveaxis(dt, 0, 1),
                                    jnp.moveaxis(hall_v, 0, 1))
-    g = jnp.moveaxis(gyro[..., used], (0, 1, 2), (2, 0, 1))  # (T, Gu, B)
+    g = jnp.moveaxis(gyro, (0, 1, 2), (2, 0, 1))  # (T, G, B)
     ts_rows = jnp.moveaxis(dt, 0, 1)  # (T, B)
     nb = st.angle_index.shape[0]
 
-    # The block rates (Eqs. 2, 9, 10) as one constant map of the held used gyro columns.
+    # The block rates (Eqs. 2, 9, 10) as one constant map of the held gyro columns.
     Rm = np.zeros((st.m + 1, nb, len(used)))
     for i in range(st.m + 1):
         for p, ab in enumerate(rate_cols[i]):
