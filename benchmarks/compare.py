@@ -73,7 +73,6 @@ from kckf_jax import (  # noqa: E402
 ROBOTS = {"bench": "x,y,x,y", "3d": "xyz,xyz,xyz,xyz"}
 DT = 0.01
 CONSTRAINT_VAR = (1e-3 * np.pi / 180) ** 2
-FLOOR = "XLA floor (read, Hall angles, write; no filter)"
 
 
 # --------------------------------------------------------------------------- data and models
@@ -270,37 +269,6 @@ def flops_bytes(robot: Robot, dtype_bytes: int) -> dict:
             "bytes_per_step": int(row + out)}
 
 
-def xla_floor(robot: Robot, shape: tuple[int, ...], dtype, repeats: int = 5) -> dict:
-    """The least work a jitted XLA function must do for this model's inputs and outputs.
-
-    Reads every row (dt, gyro, Hall voltages), computes the Hall angles (Eq. 1: two
-    exponentials per sensor) and writes the three estimate arrays (angles, std, bias) through
-    one small product of the readings: no filter at all. Whatever a Kalman filter adds comes
-    on top, so no jitted path on this machine can be faster than this; it is the practical
-    floor next to the arithmetic limit (``flops_bytes``), which assumes every byte moves at
-    the in-place copy rate and every output page is already resident."""
-    rng = np.random.default_rng(0)
-    G, M, K = 3 * robot.n_links, robot.n_hall, robot.n_angles
-    dt = jnp.full(shape, DT, dtype)
-    g = jnp.asarray(rng.normal(size=shape + (G,)), dtype)
-    h = jnp.asarray(rng.uniform(1.0, 2.0, size=shape + (M,)), dtype)
-    W = jnp.asarray(rng.normal(size=(G + M, 3 * K)) * 0.01, dtype)
-    # Eq. 1 with scalar coefficients and no sign, not the library's ``hall_angle`` (per-sensor
-    # coefficients and signs): the cheaper form keeps this a lower bound (measured: the
-    # library's form makes this function 5-23 % slower).
-    a, b, c, d = (jnp.asarray(v, dtype) for v in (1e-3, 2.87, 3.9e3, 8.43))
-
-    @jax.jit
-    def floor(dt, g, h):
-        x = jnp.concatenate([g, a * jnp.exp(b * h) - c * jnp.exp(-d * h)], axis=-1)
-        y = x @ W + dt[..., None]
-        return y[..., :K], y[..., K:2 * K], y[..., 2 * K:]
-
-    _, t, _ = timed(lambda: floor(dt, g, h), repeats=repeats)
-    n = int(np.prod(shape))
-    return {"seconds": t, "steps_per_s": n / t}
-
-
 def machine_rates() -> dict:
     """Measured float32 matmul rate and memory bandwidth of this machine (via XLA).
 
@@ -388,7 +356,6 @@ def run_robot(name: str, spec: str, args, tmp: str, dtype) -> dict:
         out, lat_np = numpy_run(model, y, u, n)
         long["numpy loop"] = {"steps_per_s": n / lat_np.sum(), "steps": n,
                               "max_err_rad": err(angles_of_x(out, robot), ref)}
-    long[FLOOR] = xla_floor(robot, (L,), dtype)
     cases["long_session"] = long
 
     # ---- vmapped trials
@@ -407,9 +374,6 @@ def run_robot(name: str, spec: str, args, tmp: str, dtype) -> dict:
     batch["dynamax vmapped"] = {"trial_steps_per_s": B * T / t, "seconds": t,
                                 "compile_s": first - t,
                                 "max_err_rad": err(angles_of_x(out, robot), ref_b)}
-    fl = xla_floor(robot, (B, T), dtype)
-    batch[FLOOR] = {
-        "trial_steps_per_s": fl["steps_per_s"], "seconds": fl["seconds"]}
     cases["vmapped_trials"] = batch
 
     if dn == "float32":
@@ -506,10 +470,6 @@ def ratios(res: dict) -> dict:
         out[f"vmapped {dn}: kckf-jax / dynamax"] = (
             batch["kckf-jax auto"][dn]["trial_steps_per_s"]
             / batch["dynamax vmapped"][dn]["trial_steps_per_s"])
-        # The most any jitted path could reach over dynamax here (no filter at all).
-        out[f"vmapped {dn}: XLA floor / dynamax"] = (
-            batch[FLOOR][dn]["trial_steps_per_s"]
-            / batch["dynamax vmapped"][dn]["trial_steps_per_s"])
     lat = res["cases"]["streaming_latency_us"]
     ours = lat["kckf-jax StreamingFilter.push"]["float32"]["median"]
     out["streaming: filterpy median / kckf-jax median"] = (
@@ -577,14 +537,6 @@ def main():
         lim["vmapped_auto_fraction_of_steady_limit"] = (
             res["cases"]["vmapped_trials"]["kckf-jax auto"]["float32"]["trial_steps_per_s"]
             / lim["steady_step_limit_steps_per_s"])
-        lim["xla_floor_steps_per_s"] = long[FLOOR]["float32"]["steps_per_s"]
-        lim["xla_floor_fraction_of_steady_limit"] = (
-            lim["xla_floor_steps_per_s"] / lim["steady_step_limit_steps_per_s"])
-        lim["auto_fraction_of_xla_floor"] = (
-            long["kckf-jax auto"]["float32"]["steps_per_s"] / lim["xla_floor_steps_per_s"])
-        lim["vmapped_auto_fraction_of_xla_floor"] = (
-            res["cases"]["vmapped_trials"]["kckf-jax auto"]["float32"]["trial_steps_per_s"]
-            / res["cases"]["vmapped_trials"][FLOOR]["float32"]["trial_steps_per_s"])
         lim["sequential_fraction_of_full_limit"] = (
             long["kckf-jax sequential"]["float32"]["steps_per_s"]
             / lim["full_step_limit_steps_per_s"])
