@@ -10,6 +10,8 @@ The public API (everything else lives in private modules; docs/architecture.md m
 * running it: ``run_filter`` (one recording), ``filter_batch`` (padded trials),
   ``filter_sessions`` (recorded sessions), ``session_series``, ``session_params``,
   ``choose_path`` and ``PathChoice`` (which path runs, and why);
+* offline analysis: ``smooth``, ``smooth_batch`` (the fixed-interval RTS smoother),
+  ``consistency_figures`` (NIS and NEES against a consistent filter's interval);
 * the paths (how the same estimates are computed): ``AbstractPath``, ``Sequential``,
   ``Steady``, ``Lanes``, ``Parallel``, ``Auto``;
 * the Hall model (Eq. 1; coefficients in rad): ``hall_angle``, ``hall_slope``,
@@ -64,6 +66,7 @@ from ._paths import Parallel as Parallel
 from ._paths import PathChoice as PathChoice
 from ._paths import Sequential as Sequential
 from ._paths import Steady as Steady
+from ._report import consistency_figures as consistency_figures
 from ._robot import Robot as Robot
 from ._run import choose_path as choose_path
 from ._run import filter_batch as filter_batch
@@ -79,6 +82,8 @@ from ._session import write_session as write_session
 from ._simulate import KINDS as KINDS
 from ._simulate import SimConfig as SimConfig
 from ._simulate import simulate as simulate
+from ._smooth import smooth as smooth
+from ._smooth import smooth_batch as smooth_batch
 from ._stream import STATUSES as STATUSES
 from ._stream import Packet as Packet
 from ._stream import PacketParser as PacketParser

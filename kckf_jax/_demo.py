@@ -79,6 +79,7 @@ def run_demo(root: str, out: str, steps: int, learning_rate: float,
         doc, angles = evaluate_sessions(test, PAPER_TABLE_METHODS)
         fitted, fitted_angles = evaluate_sessions(test, ["kckf"], result.params)
         doc["methods"]["kckf_fit"] = fitted["methods"]["kckf"]
+        doc.pop("_nis_rows", None)
         angles["kckf_fit"] = fitted_angles["kckf"]
         doc["fit"] = {"params": params_path, "train_sessions": split["train"],
                       "steps": result.steps_done, "seconds": round(result.seconds, 2),

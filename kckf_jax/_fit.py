@@ -16,6 +16,7 @@ import math
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, replace
+from typing import ClassVar
 
 import equinox as eqx
 import jax
@@ -25,6 +26,7 @@ from jaxtyping import Array, Bool, Float
 
 from ._gaps import GapPolicy
 from ._kernel import SensorSeries, init_state, pad_series
+from ._likelihood import hall_nll
 from ._params import _LEAVES, Params, with_floors
 from ._paths import AbstractPath, Auto, Sequential, Steady, as_path, is_traced
 from ._run import choose_path
@@ -53,18 +55,22 @@ class Batch(eqx.Module):
 
 
 def make_batch(sessions: Sequence[Session], dtype=None, burn_in_s: float = 0.0,
-               multiple_of: int = 1, gaps: GapPolicy = GapPolicy()) -> Batch:
+               multiple_of: int = 1, gaps: GapPolicy = GapPolicy(), length: int | None = None,
+               trials: int | None = None, need_truth: bool = True) -> Batch:
     """Stack ``sessions`` into a ``Batch``; the trial count is padded to ``multiple_of``
-    (for sharding) with copies of the first trial that have no truth, so they add nothing to
-    the loss (and keep a regular batch regular). A session with a gap where ``gaps``
-    restarts the filter becomes one trial per stretch (``split_at_gaps``), as every command
-    filters it; ``len(trial_sessions(sessions, gaps))`` counts them."""
+    (for sharding), or to ``trials``, with copies of the first trial that have no truth, so
+    they add nothing to the loss (and keep a regular batch regular), and the rows to the
+    longest trial, or to ``length``. A session with a gap where ``gaps`` restarts the filter
+    becomes one trial per stretch (``split_at_gaps``), as every command filters it;
+    ``len(trial_sessions(sessions, gaps))`` counts them. ``need_truth=False`` accepts
+    sessions without motion capture (the likelihood loss)."""
     if not sessions:
         raise ValueError("no sessions to fit on")
     dtype = dtype or jnp.asarray(0.0).dtype
     for s in sessions:
-        if not s.has_truth:
-            raise ValueError(f"{s.path or 'session'}: no motion capture to fit against")
+        if need_truth and not s.has_truth:
+            raise ValueError(f"{s.path or 'session'}: no motion capture to fit against (the "
+                             "likelihood loss, --loss nll, needs none)")
     pieces = trial_sessions(sessions, gaps)
     series = [SensorSeries(s.dt(), s.gyro, s.hall_v) for s in pieces]
     truths = []
@@ -74,9 +80,11 @@ def make_batch(sessions: Sequence[Session], dtype=None, burn_in_s: float = 0.0,
             tr[s.t - whole.t[0] < burn_in_s] = np.nan
         truths.append(tr)
     sessions = pieces
-    T = max(s.n_steps for s in sessions)
+    T = max(s.n_steps for s in sessions) if length is None else length
     K = sessions[0].robot.n_angles
-    n_pad = (-len(sessions)) % multiple_of
+    n_pad = (-len(sessions)) % multiple_of if trials is None else trials - len(sessions)
+    if n_pad < 0:
+        raise ValueError(f"make_batch: {len(sessions)} trials, more than trials={trials}")
     batch = pad_series(series + [series[0]] * n_pad, length=T)
     truth = np.full((len(series) + n_pad, T, K), np.nan)
     for b, tr in enumerate(truths):
@@ -165,6 +173,47 @@ class RmseLoss(AbstractLoss):
         return self
 
 
+class NllLoss(AbstractLoss):
+    """The negative log-likelihood of every Hall reading given the earlier ones (nats per
+    reading; ``_likelihood.hall_nll``): needs no motion capture."""
+
+    method: str = eqx.field(static=True)
+    unit: ClassVar[str] = "nats"
+    scale: ClassVar[float] = 1.0
+
+    def __call__(self, params, batch):
+        return hall_nll(params, batch.series, self.method)
+
+
+class RmseNllLoss(AbstractLoss):
+    """Both: the RMSE against motion capture in deg plus the likelihood in nats per reading
+    (``unit`` "deg+nats"), each on its own scale."""
+
+    rmse: RmseLoss
+    nll: NllLoss
+    unit: ClassVar[str] = "deg_plus_nats"
+    scale: ClassVar[float] = 1.0
+
+    def __call__(self, params, batch):
+        return self.rmse(params, batch) * RAD2DEG + self.nll(params, batch)
+
+    def refresh(self, params) -> RmseNllLoss:
+        new = self.rmse.refresh(params)
+        return self if new is self.rmse else replace(self, rmse=new)
+
+
+LOSSES = ("rmse", "nll", "rmse+nll")
+
+
+def make_loss(kind: str, params: Params, batch: Batch, method: str,
+              remat_chunk: int | None) -> AbstractLoss:
+    """The training loss ``kind`` (``LOSSES``) on ``batch``."""
+    if kind == "nll":
+        return NllLoss(method)
+    rmse = rmse_loss(params, batch, method, remat_chunk)
+    return rmse if kind == "rmse" else RmseNllLoss(rmse, NllLoss(method))
+
+
 def rmse_loss(params: Params, batch: Batch, method: str, remat_chunk: int | None) -> RmseLoss:
     """The training loss on ``batch``, its path chosen on the concrete data and ``params``."""
     fallback = Sequential(remat_chunk)
@@ -182,14 +231,48 @@ def trial_mesh() -> jax.sharding.Mesh:
 def shard_batch(batch: Batch, mesh: jax.sharding.Mesh | None = None) -> Batch:
     """Place the trials of ``batch`` across the devices of ``mesh`` (parameters stay
     replicated); the trial count must be a multiple of the device count (``make_batch``'s
-    ``multiple_of``). On one device this is a no-op placement."""
+    ``multiple_of``). On one device this is a no-op placement.
+
+    Under ``jax.distributed`` (several processes) ``batch`` holds this process's trials only,
+    the same count in every process (a multiple of its local devices): the global batch is
+    every process's, in process order (``jax.make_array_from_process_local_data``)."""
     mesh = mesh or trial_mesh()
     spec = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("trials"))
+    if jax.process_count() > 1:
+        n_local = jax.local_device_count()
+        if batch.truth.shape[0] % n_local:
+            raise ValueError(f"shard_batch: {batch.truth.shape[0]} trials do not split over "
+                             f"{n_local} local devices")
+        return jax.tree_util.tree_map(
+            lambda x: jax.make_array_from_process_local_data(spec, np.asarray(x)), batch)
     n_dev = mesh.devices.size
     if batch.truth.shape[0] % n_dev:
         raise ValueError(f"shard_batch: {batch.truth.shape[0]} trials do not split over "
                          f"{n_dev} devices; build the batch with make_batch(multiple_of={n_dev})")
     return jax.device_put(batch, spec)
+
+
+def _process_max(*values: int) -> list[int]:
+    """Each value's largest over every process (``jax.distributed``; itself in one process)."""
+    if jax.process_count() == 1:
+        return list(values)
+    from jax.experimental import multihost_utils
+
+    got = multihost_utils.process_allgather(np.asarray(values, np.int64))
+    return [int(x) for x in np.asarray(got).reshape(-1, len(values)).max(axis=0)]
+
+
+def _local_batch(sessions, dtype, burn_in_s, multiple, gaps, need_truth=True) -> Batch:
+    """This process's part of a batch: in several processes, every process's part has the
+    same rows (the longest trial of any) and trials (the most of any, in whole multiples of
+    the local devices), so that the parts make one global batch."""
+    pieces = trial_sessions(sessions, gaps)
+    T, n = _process_max(max(p.n_steps for p in pieces), len(pieces))
+    if jax.process_count() == 1:
+        return make_batch(sessions, dtype, burn_in_s, multiple, gaps, need_truth=need_truth)
+    n = -(-n // jax.local_device_count()) * jax.local_device_count()
+    return make_batch(sessions, dtype, burn_in_s, gaps=gaps, length=T, trials=n,
+                      need_truth=need_truth)
 
 
 # ----------------------------------------------------------------------------- config
@@ -212,6 +295,8 @@ class FitConfig:
         checkpoint_every: steps between checkpoints (when a checkpoint path is given).
         seed: makes minibatch draws deterministic.
         method: the filter to fit (``"kckf"`` or ``"kf"``).
+        loss: ``"rmse"`` (the mean RMSE against motion capture), ``"nll"`` (the negative
+            log-likelihood of the Hall readings: no motion capture needed) or ``"rmse+nll"``.
     """
 
     steps: int = 200
@@ -227,6 +312,7 @@ class FitConfig:
     checkpoint_every: int = 10
     seed: int = 0
     method: str = "kckf"
+    loss: str = "rmse"
 
     def __post_init__(self):
         unknown = sorted(set(self.freeze) - set(_LEAVES))
@@ -235,6 +321,9 @@ class FitConfig:
                              f"from {', '.join(_LEAVES)}")
         if self.method not in ("kckf", "kf"):
             raise ValueError(f"FitConfig.method: expected 'kckf' or 'kf', got {self.method!r}")
+        if self.loss not in LOSSES:
+            raise ValueError(f"FitConfig.loss: expected one of {', '.join(LOSSES)}, got "
+                             f"{self.loss!r}")
         self.train_config()  # the loop's own checks
 
     def train_config(self) -> TrainConfig:
@@ -256,6 +345,12 @@ def initial_params(sessions: Sequence[Session], config: FitConfig, dtype=None) -
 
 
 # ----------------------------------------------------------------------------- training
+def fingerprint_of(data: bytes) -> str:
+    import hashlib
+
+    return hashlib.sha256(data).hexdigest()[:16]
+
+
 def fingerprint(sessions: Sequence[Session], val: Sequence[Session]) -> str:
     """Identifies the data of a fit (so ``--resume`` refuses a different set of sessions)."""
     import hashlib
@@ -301,28 +396,52 @@ def fit(
             on data sets of different sizes can share one compiled training step.
         gaps: what a gap in the sensor rows does (``GapPolicy``; as every command).
 
+    Under ``jax.distributed`` (``jax.distributed.initialize()`` in every process, then the
+    same ``fit`` call in each) every process passes only its own ``sessions`` and
+    ``val_sessions``; the trials of all of them form one batch sharded over every device, the
+    loss and its gradient are reduced over all of them (XLA's collectives), and every process
+    gets the same parameters. Minibatches (``batch_size``) are for one process; process 0
+    writes the checkpoint, which every process reads to resume (a shared file system).
+
     Returns:
         A ``FitResult`` with the best parameters found.
     """
     t0 = time.perf_counter()
     n_dev = jax.device_count()
     multiple = math.lcm(n_dev, pad_trials_to or 1)
-    batch = shard_batch(make_batch(sessions, dtype, config.burn_in_s, multiple, gaps))
-    val = (shard_batch(make_batch(val_sessions, dtype, config.burn_in_s, multiple, gaps))
-           if val_sessions else None)
+    n_proc = jax.process_count()
+    if n_proc > 1 and config.batch_size:
+        raise ValueError("fit: batch_size (minibatches) needs one process; under "
+                         "jax.distributed every step uses every process's trials")
+    need = config.loss != "nll"
+    batch = shard_batch(_local_batch(sessions, dtype, config.burn_in_s, multiple, gaps, need))
+    has_val = _process_max(len(val_sessions))[0] > 0
+    if has_val and not val_sessions:
+        raise ValueError("fit: under jax.distributed every process needs val_sessions when "
+                         "any has them")
+    val = (shard_batch(_local_batch(val_sessions, dtype, config.burn_in_s, multiple, gaps, need))
+           if has_val else None)
     B, T = batch.truth.shape[:2]
     chunk = config.remat_chunk or auto_chunk(T, config.batch_size or B)
     params = init if init is not None else initial_params(sessions, config, dtype)
     if params.robot != sessions[0].robot:
         raise ValueError(f"initial parameters are for joints {params.robot.spec!r}, the "
                          f"sessions have {sessions[0].robot.spec!r}")
-    loss = rmse_loss(params, batch, config.method, chunk)
+    loss = make_loss(config.loss, params, batch, config.method, chunk)
     # The validation loss is not differentiated: no remat needed.
-    val_loss = rmse_loss(params, val, config.method, None) if val is not None else None
+    val_loss = (make_loss(config.loss, params, val, config.method, None) if val is not None
+                else None)
     # Parameters live replicated on every device (committed, so that the first and later
     # steps see identically placed inputs and compile once).
     replicated = jax.sharding.NamedSharding(trial_mesh(), jax.sharding.PartitionSpec())
-    identity = {"config": asdict(config), "fingerprint": fingerprint(sessions, val_sessions)}
+    identity = {"config": asdict(config), "fingerprint": fingerprint(sessions, val_sessions),
+                "processes": n_proc}
+    if n_proc > 1:  # every process's data, so that each accepts process 0's checkpoint
+        from jax.experimental import multihost_utils
+
+        fps = multihost_utils.process_allgather(
+            np.frombuffer(identity["fingerprint"].encode(), np.uint8))
+        identity["fingerprint"] = fingerprint_of(np.asarray(fps).tobytes())
     n_trials = len(trial_sessions(sessions, gaps))
     result = train(loss, params, batch, n_trials, config.train_config(), val_batch=val,
                    val_loss=val_loss, checkpoint=checkpoint, resume=resume, identity=identity,

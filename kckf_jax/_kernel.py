@@ -222,6 +222,41 @@ def block_inputs(
     return dt, rates, noise, hb, rb, vb
 
 
+def block_step(
+    st,
+    z: Float[Array, " Nz"],
+    P: Float[Array, "Nz Nz"],
+    rates: Float[Array, " m1"],
+    alpha: Float[Array, " m1"],
+    beta: Float[Array, " m1"],
+    gamma: Float[Array, " m1"],
+    hb: Float[Array, " m"],
+    rb: Float[Array, " m"],
+    vb: Bool[Array, " m"],
+    dt: Float[Array, ""],
+) -> tuple[Float[Array, " Nz"], Float[Array, "Nz Nz"], Float[Array, " Ny"], Float[Array, "Ny Ny"],
+           Float[Array, " m"], Float[Array, " m"]]:
+    """``block_update`` with what happened on the way: returns ``(z, P, y, S, nu, s)``, the new
+    state, the predicted moments of ``y = [z, e]`` (before any update: the smoother's
+    ``x_{k|k-1}``) and each joint's fused Hall innovation ``nu`` and its variance ``s`` (the
+    likelihood's and NIS's terms; where ``vb`` is false they are not used)."""
+    y_pred, S_pred = predicted_moments(st, z, P, rates, (alpha, beta, gamma), dt)
+    y, S = y_pred, S_pred
+    for i in range(st.n_e):
+        e = st.n_z + i
+        y, S = coordinate_update(y, S, e, -y[e], jnp.zeros((), z.dtype), dt > 0)
+    z, P = y[: st.n_z], S[: st.n_z, : st.n_z]
+    nus, ss = [], []
+    for i in range(st.m):
+        nus.append(hb[i] - z[i])
+        ss.append(P[i, i] + rb[i])
+        z, P = coordinate_update(z, P, i, nus[-1], rb[i], vb[i])
+    zero = jnp.zeros((0,), z.dtype)
+    nu = jnp.stack(nus) if nus else zero
+    s = jnp.stack(ss) if ss else zero
+    return z, symmetrise(P), y_pred, S_pred, nu, s
+
+
 def block_update(
     st,
     z: Float[Array, " Nz"],
@@ -242,14 +277,7 @@ def block_update(
     fused Hall reading (Eqs. 4-5, 8, 20). For fixed ``P``, ``dt`` and masks the new ``z`` is
     linear in ``(z, rates, hb)``: the steady and parallel paths (``_paths``) use exactly that.
     """
-    y, S = predicted_moments(st, z, P, rates, (alpha, beta, gamma), dt)
-    for i in range(st.n_e):
-        e = st.n_z + i
-        y, S = coordinate_update(y, S, e, -y[e], jnp.zeros((), z.dtype), dt > 0)
-    z, P = y[: st.n_z], S[: st.n_z, : st.n_z]
-    for i in range(st.m):
-        z, P = coordinate_update(z, P, i, hb[i] - z[i], rb[i], vb[i])
-    return z, symmetrise(P)
+    return block_step(st, z, P, rates, alpha, beta, gamma, hb, rb, vb, dt)[:2]
 
 
 def block_estimate(st, z: BlockState, P: BlockCov) -> Estimate:
@@ -264,11 +292,29 @@ def block_estimate(st, z: BlockState, P: BlockCov) -> Estimate:
     return Estimate(xb[bo, so], jnp.sqrt(jnp.maximum(var[bo, so], 0.0)), xb[bo, m1 + so])
 
 
-def _kalman_step(params: Params, state: FilterState, inputs: SensorSeries, method: str):
+class StepMoments(eqx.Module):
+    """What a Kalman step computed on the way (``kalman_step_moments``), per block: the
+    predicted moments of ``y = [z, e]`` (``y``, ``S``), each joint's fused Hall innovation
+    and its variance (``nu``, ``s``) and whether that reading was used (``valid``), the time
+    step and whether the update was skipped. The smoother and the likelihood read them."""
+
+    y: Float[Array, "*T Nb Ny"]
+    S: Float[Array, "*T Nb Ny Ny"]
+    nu: Float[Array, "*T Nb m"]
+    s: Float[Array, "*T Nb m"]
+    valid: Bool[Array, "*T Nb m"]
+    dt: Float[Array, "*T"]
+    skipped: Bool[Array, "*T"]
+
+
+def kalman_step_moments(params: Params, state: FilterState, inputs: SensorSeries,
+                        method: str) -> tuple[FilterState, Estimate, StepMoments]:
+    """``step`` of a Kalman method (``"kckf"``, ``"kf"``), and its ``StepMoments``."""
+    inputs = plausible(params, inputs)
     st = structure(params.robot, method)
     dt, rates, noise, hb, rb, vb = block_inputs(params, st, state.gyro_hold, inputs)
-    z, P = jax.vmap(lambda *a: block_update(st, *a, dt))(state.z, state.P, rates, *noise, hb,
-                                                           rb, vb)
+    z, P, y, S, nu, s = jax.vmap(lambda *a: block_step(st, *a, dt))(
+        state.z, state.P, rates, *noise, hb, rb, vb)
     gyro = inputs.gyro.astype(state.z.dtype)
     hold = jnp.where(jnp.isfinite(gyro), gyro, state.gyro_hold)
     # An update that is not finite (a time step so long that the prediction overflows) is
@@ -277,7 +323,12 @@ def _kalman_step(params: Params, state: FilterState, inputs: SensorSeries, metho
     new = jax.tree_util.tree_map(lambda a, b: jnp.where(ok, a, b), FilterState(z, P, hold),
                                  state)
     est = block_estimate(st, new.z, new.P)
-    return new, dataclasses.replace(est, skipped=~ok)
+    return new, dataclasses.replace(est, skipped=~ok), StepMoments(y, S, nu, s, vb & ok, dt,
+                                                                   ~ok)
+
+
+def _kalman_step(params: Params, state: FilterState, inputs: SensorSeries, method: str):
+    return kalman_step_moments(params, state, inputs, method)[:2]
 
 
 def _baseline_step(params: Params, state: FilterState, inputs: SensorSeries, method: str):
@@ -309,10 +360,9 @@ def step(
     ``SensorSeries``; a reading outside ``params.limits`` counts as missing.
     """
     check_method(method)
-    inputs = plausible(params, inputs)
     if method in FILTER_METHODS:
         return _kalman_step(params, state, inputs, method)
-    return _baseline_step(params, state, inputs, method)
+    return _baseline_step(params, state, plausible(params, inputs), method)
 
 
 def plausible(params: Params, series: SensorSeries) -> SensorSeries:

@@ -9,13 +9,16 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
+import equinox as eqx
 import numpy as np
 
 from ._gaps import GapPolicy, find_gaps
 from ._gaps import describe as describe_gaps
+from ._likelihood import consistency, innovations
 from ._metrics import rmse_table
+from ._model import FILTER_METHODS
 from ._params import Params
-from ._run import filter_sessions, session_params
+from ._run import filter_sessions, session_params, session_series
 from ._session import Session
 
 PAPER_TABLE_METHODS = ("gyro", "hall_l", "hall_r", "kf", "kckf")
@@ -68,16 +71,49 @@ def estimate_faults(sessions: Sequence[Session], method: str, estimates) -> list
     return lines
 
 
+def consistency_figures(sessions: Sequence[Session], method: str, estimates,
+                        params: Params | None = None) -> tuple[dict, list[np.ndarray]]:
+    """The Kalman filters' consistency on ``sessions``: ``{"nis": ..., "nees": ...}``
+    (``_likelihood.consistency``: the mean normalised innovation squared of the fused Hall
+    readings with the 95 % interval of a consistent filter's mean, and the mean normalised
+    squared error of the angles where motion capture exists, whose terms are correlated in
+    time so that it has no such interval), and each session's
+    per-row mean NIS (NaN where no reading was used) for the plots."""
+    nis_all, nees_all, rows = [], [], []
+    for s, p, e in zip(sessions, session_params(sessions, params), estimates):
+        nu, var, valid = (np.asarray(x, np.float64)
+                          for x in _innovations(p, session_series(s, p.log_q.dtype), method))
+        nis = np.where(valid, nu**2 / np.where(valid, var, 1.0), np.nan)
+        nis_all.append(nis[np.isfinite(nis)])
+        with np.errstate(invalid="ignore"):
+            rows.append(np.nanmean(nis.reshape(nis.shape[0], -1), axis=1)
+                        if np.isfinite(nis).any() else np.full(nis.shape[0], np.nan))
+        err = (np.asarray(e.angles, np.float64) - s.truth()) / np.asarray(e.angle_std,
+                                                                         np.float64)
+        nees_all.append(err[np.isfinite(err)] ** 2)
+    return ({"nis": consistency(np.concatenate(nis_all)),
+             "nees": consistency(np.concatenate(nees_all), independent=False)}, rows)
+
+
+@eqx.filter_jit
+def _innovations(params, series, method):
+    return innovations(params, series, method)
+
+
 def evaluate_sessions(sessions: Sequence[Session], methods: Sequence[str],
                       params: Params | None = None, burn_in_s: float = 0.0,
-                      gaps: GapPolicy = GapPolicy()):
+                      gaps: GapPolicy = GapPolicy(), smooth: bool = False):
     """Every method on ``sessions``: the ``kckf evaluate --json`` document and the estimated
     angles ``{method: [(T, K) per session]}``.
 
     Each method has its RMSE table (``rmse_table``: with the count of steps that have truth
-    and of steps scored), the ``"path"`` that computed it and the ``"skipped_updates"``; the
-    document has what is wrong with the data (``data_faults``) and ``"warnings"``: one line
-    for people per finding, and per method whose RMSE is over fewer steps than have truth.
+    and of steps scored), the ``"path"`` that computed it and the ``"skipped_updates"``, and
+    the Kalman filters their consistency (``"nis"``, ``"nees"``: ``consistency_figures``);
+    the document has what is wrong with the data (``data_faults``) and ``"warnings"``: one
+    line for people per finding, and per method whose RMSE is over fewer steps than have
+    truth. ``smooth``: the Kalman methods' smoothed estimates are scored (``"smoothed":
+    true``; their NIS is the filter's). ``"_nis_rows"`` (not for the JSON) has each Kalman
+    method's per-row NIS for the plots.
 
     Raises ``ValueError`` naming the session when one has no motion capture over its sensor
     rows."""
@@ -88,13 +124,19 @@ def evaluate_sessions(sessions: Sequence[Session], methods: Sequence[str],
                 "evaluate)"
             )
     faults, warnings = data_faults(sessions, params, gaps)
-    out, angles = {}, {}
+    out, angles, nis_rows = {}, {}, {}
     for m in methods:
-        est = filter_sessions(sessions, m, params, gaps=gaps)
+        kalman = m in FILTER_METHODS
+        est = filter_sessions(sessions, m, params, gaps=gaps, smooth=smooth and kalman)
         angles[m] = [e.angles for e in est]
         out[m] = rmse_table(sessions, angles[m], burn_in_s)
         out[m]["path"] = "+".join(dict.fromkeys(e.path for e in est))
         out[m]["skipped_updates"] = int(sum(np.asarray(e.skipped).sum() for e in est))
+        if kalman:
+            figures, nis_rows[m] = consistency_figures(sessions, m, est, params)
+            out[m].update(figures)
+            if smooth:
+                out[m]["smoothed"] = True
         warnings += estimate_faults(sessions, m, est)
         short = {n: (out[m]["steps_scored"][n], k) for n, k in out[m]["steps_with_truth"].items()
                  if out[m]["steps_scored"][n] < k}
@@ -103,7 +145,7 @@ def evaluate_sessions(sessions: Sequence[Session], methods: Sequence[str],
             warnings.append(f"{m}: RMSE over fewer steps than have truth (no estimate at the "
                             f"others): {text}")
     doc = {"methods": out, "sessions": [s.path for s in sessions], **faults,
-           "warnings": warnings}
+           "warnings": warnings, "_nis_rows": nis_rows}
     return doc, angles
 
 

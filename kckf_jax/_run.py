@@ -21,6 +21,7 @@ from ._kernel import Estimate, FilterState, SensorSeries, check_method, init_sta
 from ._params import Params
 from ._paths import AbstractPath, Auto, PathChoice, as_path
 from ._session import Session, split_at_gaps
+from ._smooth import smooth_batch
 
 
 def choose_path(params: Params, series: SensorSeries, method: str = "kckf",
@@ -173,6 +174,7 @@ def same_params(a: Params, b: Params) -> bool:
 def filter_sessions(
     sessions: Sequence[Session], method: str = "kckf", params: Params | None = None,
     dtype=None, path: str | AbstractPath = "auto", gaps: GapPolicy = GapPolicy(),
+    smooth: bool = False,
 ) -> list[Estimate]:
     """Run ``method`` over every session; one ``Estimate`` per session, cut back to the
     session's own length, as NumPy arrays, its ``path`` naming the path that ran.
@@ -182,7 +184,8 @@ def filter_sessions(
     the path chosen on the batch); a single regular session takes the steady path. A gap in
     the sensor rows gets ``gaps``' policy: predicted across, or (``on_gap="restart"``, or
     longer than ``max_predict_s``) the filter starts again after it, the stretches then being
-    trials of the batch (``split_at_gaps``)."""
+    trials of the batch (``split_at_gaps``). ``smooth``: the fixed-interval (RTS) smoothed
+    estimates instead (``smooth_batch``; the Kalman methods), ``path`` ``"smoothed"``."""
     check_method(method)
     plist = session_params(sessions, params, dtype)
     pieces = [(i, piece) for i, s in enumerate(sessions) for piece in split_at_gaps(s, gaps)]
@@ -199,7 +202,7 @@ def filter_sessions(
         dtype_p = p.log_q.dtype
         batch = pad_series([session_series(pieces[j][1], np.float64) for j in members])
         batch = jax.tree_util.tree_map(lambda x, d=dtype_p: jnp.asarray(x, d), batch)
-        est = filter_batch(p, batch, method, path)
+        est = smooth_batch(p, batch, method) if smooth else filter_batch(p, batch, method, path)
         arrays = jax.tree_util.tree_map(np.asarray, est)
         for b, j in enumerate(members):
             n = pieces[j][1].n_steps

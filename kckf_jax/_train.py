@@ -21,6 +21,7 @@ import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 import equinox as eqx
 import jax
@@ -31,11 +32,16 @@ RAD2DEG = 180.0 / math.pi
 
 
 class AbstractLoss(eqx.Module):
-    """A fitting loss: ``__call__(params, batch)`` (rad, traceable) and ``refresh(params)``.
+    """A fitting loss: ``__call__(params, batch)`` (traceable) and ``refresh(params)``.
 
     ``refresh`` gets the concrete parameters before every step and returns the loss to use for
     it: ``self``, or another loss when a decision made on concrete values (the path) no longer
-    holds; the training step recompiles for the new one."""
+    holds; the training step recompiles for the new one. ``unit`` names what the history
+    reports (``"loss_" + unit``, ``"val_" + unit``), ``scale`` turns the value into it (an
+    RMSE in rad is reported in deg)."""
+
+    unit: ClassVar[str] = "deg"
+    scale: ClassVar[float] = RAD2DEG
 
     @abc.abstractmethod
     def __call__(self, params, batch) -> Float[Array, ""]:
@@ -130,9 +136,11 @@ class FitResult:
     steps_done: int = 0
     stopped_early: bool = False
     seconds: float = 0.0
+    unit: str = "deg"
 
     def info(self) -> dict:
         return {"best_step": self.best_step, "best_loss_deg": self.best_loss_deg,
+                "unit": self.unit,
                 "steps_done": self.steps_done, "stopped_early": self.stopped_early,
                 "seconds": round(self.seconds, 2), "history": self.history}
 
@@ -210,8 +218,9 @@ def train(
         resume: continue from ``checkpoint`` with nothing lost: the result equals that of an
             uninterrupted fit. ``identity`` (the data's fingerprint and the settings) must
             equal the checkpoint's.
-        callback: called after every step with ``{"step", "loss_deg", "val_deg"}`` (and
-            ``"refreshed"`` when ``refresh`` gave a new loss for that step).
+        callback: called after every step with ``{"step", "loss_deg", "val_deg"}`` (the
+            loss's ``unit``: ``"loss_nats"`` for the likelihood) and ``"refreshed"`` when
+            ``refresh`` gave a new loss for that step.
         place: applied to the starting parameters and optimiser state (e.g. replicate them
             on every device).
 
@@ -241,13 +250,13 @@ def train(
                              "sessions or settings; resume with the same command line")
         start, best, history = header["step"], header["best"], header["history"]
     key = jax.random.PRNGKey(config.seed)
-    since_best = sum(1 for h in history if h.get("val_deg") is not None
+    since_best = sum(1 for h in history if h.get(f"val_{loss.unit}") is not None
                      and h["step"] > best["step"])
     stopped_early = False
     step = start
 
     def save(step_done: int):
-        if checkpoint:
+        if checkpoint and jax.process_index() == 0:  # one writer under jax.distributed
             header = {"kind": "kckf-fit-checkpoint/2", "identity": identity,
                       "step": step_done, "best": best, "history": history}
             _save_checkpoint(checkpoint, header, (diff, opt_state, best_params))
@@ -272,15 +281,16 @@ def train(
             new_diff, new_opt_state, value = _train_step(loss, diff, static, opt_state, batch,
                                                          idx, opt)
             # The loss of the parameters before this update, which are the ones scored.
-            record["loss_deg"] = float(value) * RAD2DEG
-            record["val_deg"] = None
-            score = record["loss_deg"]
+            lk, vk = f"loss_{loss.unit}", f"val_{loss.unit}"
+            record[lk] = float(value) * loss.scale
+            record[vk] = None
+            score = record[lk]
             last = step + 1 == config.steps
             if val_batch is not None and ((step % config.val_every) == 0 or last):
-                score = float(_eval(val_loss, current, val_batch)) * RAD2DEG
-                record["val_deg"] = score
+                score = float(_eval(val_loss, current, val_batch)) * loss.scale
+                record[vk] = score
             diff, opt_state = new_diff, new_opt_state
-            if val_batch is None or record["val_deg"] is not None:
+            if val_batch is None or record[vk] is not None:
                 if score < best["loss"]:
                     best = {"step": step, "loss": score}
                     best_params = current
@@ -302,7 +312,7 @@ def train(
         final = eqx.combine(diff, static)
         loss, val_loss = _refresh(loss, val_loss, final, {})
         fin = (float(_eval(val_loss, final, val_batch)) if val_batch is not None
-               else float(_eval(loss, final, batch))) * RAD2DEG
+               else float(_eval(loss, final, batch))) * loss.scale
         if config.keep == "last":
             best, best_params = {"step": step, "loss": fin}, final
         elif fin < best["loss"]:
@@ -319,7 +329,8 @@ def train(
     save(step)
     return FitResult(params=best_params, best_step=int(best["step"]),
                      best_loss_deg=float(best["loss"]), history=history, steps_done=step,
-                     stopped_early=stopped_early, seconds=time.perf_counter() - t0)
+                     stopped_early=stopped_early, seconds=time.perf_counter() - t0,
+                     unit=loss.unit)
 
 
 def _refresh(loss: AbstractLoss, val_loss: AbstractLoss, params, record: dict):

@@ -109,7 +109,8 @@ def cmd_filter(args) -> int:
     (session,) = _read_sessions([args.session], args=args)
     params = _load_params(args, [session])
     _warn(args, data_faults([session], params, _gaps(args))[1])
-    (est,) = filter_sessions([session], method, params, gaps=_gaps(args))
+    (est,) = filter_sessions([session], method, params, gaps=_gaps(args),
+                             smooth=args.smooth)
     _warn(args, estimate_faults([session], method, [est]))
     write_estimates(args.output, session, est)
     _say(args, f"wrote {args.output}: {session.n_steps} rows of {method} estimates "
@@ -126,7 +127,8 @@ def cmd_evaluate(args) -> int:
     params = _load_params(args, sessions)
     from ._report import evaluate_sessions, format_table
 
-    doc, angles = evaluate_sessions(sessions, methods, params, args.burn_in, _gaps(args))
+    doc, angles = evaluate_sessions(sessions, methods, params, args.burn_in, _gaps(args),
+                                    smooth=args.smooth)
     _warn(args, doc["warnings"])
     if args.plot:
         from ._report import session_name
@@ -134,8 +136,10 @@ def cmd_evaluate(args) -> int:
 
         for i, s in enumerate(sessions):
             plot_session(s, {m: angles[m][i] for m in methods}, args.plot, session_name(s.path),
-                         gaps=doc["gaps"].get(s.path, []))
+                         gaps=doc["gaps"].get(s.path, []),
+                         nis={m: doc["_nis_rows"][m][i] for m in doc["_nis_rows"]})
         _say(args, f"figures in {args.plot}")
+    doc.pop("_nis_rows", None)
     if args.json:
         print(json.dumps(doc, indent=None))
     else:
@@ -172,19 +176,36 @@ def _params_for(args, robot, hall_models, what: str, missing: str = ""):
     return Params.paper_defaults(robot, hall_models, dtype=dtype)
 
 
+def _distributed(args) -> None:
+    """``--coordinator``: join a ``jax.distributed`` fit (every process runs the same command
+    with its own sessions and its own ``--process-id``)."""
+    if not args.coordinator:
+        return
+    if args.num_processes is None or args.process_id is None:
+        raise UsageError("--coordinator needs --num-processes N and --process-id I")
+    import jax
+
+    if jax.default_backend() == "cpu":
+        jax.config.update("jax_cpu_collectives_implementation", "gloo")
+    jax.distributed.initialize(coordinator_address=args.coordinator,
+                               num_processes=args.num_processes, process_id=args.process_id)
+
+
 def cmd_fit(args) -> int:
     from ._fit import FitConfig, FitInterrupted, fit, fit_info
     from ._params import save_params
     from ._report import data_faults
     from ._run import common_robot
 
-    sessions = _read_sessions(args.sessions, require_mocap=True, args=args)
-    val = _read_sessions(args.val or [], require_mocap=True, args=args)
+    _distributed(args)
+    mocap = args.loss != "nll"  # the likelihood needs no motion capture
+    sessions = _read_sessions(args.sessions, require_mocap=mocap, args=args)
+    val = _read_sessions(args.val or [], require_mocap=mocap, args=args)
     common_robot(sessions + val)
     _warn(args, data_faults(sessions + val, None, _gaps(args))[1])
     config = FitConfig(steps=args.steps, learning_rate=args.lr, hall_noise=args.noise,
                        freeze=tuple(args.freeze or ()), burn_in_s=args.burn_in,
-                       batch_size=args.batch_size, seed=args.seed)
+                       batch_size=args.batch_size, seed=args.seed, loss=args.loss)
     init = None
     if args.init:
         from ._params import load_params
@@ -195,10 +216,11 @@ def cmd_fit(args) -> int:
     last = {"val": None}
 
     def on_step(rec):
-        if rec["val_deg"] is not None:
-            last["val"] = rec["val_deg"]
+        unit = next(k for k in rec if k.startswith("loss_"))[len("loss_"):]
+        if rec[f"val_{unit}"] is not None:
+            last["val"] = rec[f"val_{unit}"]
         val_txt = f" val {last['val']:.3f}" if last["val"] is not None else ""
-        bar.update(1, f"loss {rec['loss_deg']:.3f} deg{val_txt}")
+        bar.update(1, f"loss {rec[f'loss_{unit}']:.3f} {unit.replace('_plus_', '+')}{val_txt}")
 
     try:
         result = fit(sessions, val, config, init=init, checkpoint=ckpt, resume=args.resume,
@@ -208,11 +230,16 @@ def cmd_fit(args) -> int:
         print(f"kckf fit: {exc}", file=sys.stderr)
         return 130
     bar.close()
-    save_params(result.params, args.output, fit_info(result, sessions, val, config))
-    if os.path.exists(ckpt):
-        os.remove(ckpt)
-    summary = {"params": args.output, "best_step": result.best_step,
-               "best_rmse_deg": result.best_loss_deg, "selected_on": "val" if val else "train",
+    import jax
+
+    if jax.process_index() == 0:  # one writer under --coordinator
+        save_params(result.params, args.output, fit_info(result, sessions, val, config))
+        if os.path.exists(ckpt):
+            os.remove(ckpt)
+    best = {"deg": "best_rmse_deg", "nats": "best_nll_nats"}.get(result.unit,
+                                                                 f"best_{result.unit}")
+    summary = {"params": args.output, "best_step": result.best_step, "loss": args.loss,
+               best: result.best_loss_deg, "selected_on": "val" if val else "train",
                "steps_done": result.steps_done, "stopped_early": result.stopped_early,
                "seconds": round(result.seconds, 2)}
     print(json.dumps(summary))
@@ -434,6 +461,8 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--method", default="kckf")
     f.add_argument("--params", help="fitted parameters (kckf fit)")
     f.add_argument("-o", "--output", required=True, help="estimates CSV to write")
+    f.add_argument("--smooth", action="store_true",
+                   help="the fixed-interval (RTS) smoothed estimates instead (kckf, kf)")
     _data_options(f)
     f.set_defaults(func=cmd_filter)
 
@@ -444,6 +473,8 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--json", action="store_true", help="JSON on stdout")
     e.add_argument("--plot", metavar="DIR", help="write Fig. 5/6-style plots to DIR")
     e.add_argument("--burn-in", type=float, default=0.0, help="seconds left out at the start")
+    e.add_argument("--smooth", action="store_true",
+                   help="score the fixed-interval (RTS) smoothed estimates (kckf, kf)")
     _data_options(e)
     e.set_defaults(func=cmd_evaluate)
 
@@ -461,11 +492,19 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--freeze", action="append", metavar="LEAF",
                    help="keep a parameter leaf fixed, e.g. log_p0_angle (repeatable)")
     t.add_argument("--burn-in", type=float, default=0.0, help="seconds left out of the loss")
+    t.add_argument("--loss", choices=("rmse", "nll", "rmse+nll"), default="rmse",
+                   help="rmse against motion capture (default), nll: the likelihood of the Hall "
+                        "readings (needs no mocap.csv), or both")
     t.add_argument("--batch-size", type=int, help="trials per step (default all)")
     t.add_argument("--init", help="start from this parameter file instead of the paper's")
     t.add_argument("--checkpoint", help="checkpoint file (default OUTPUT.ckpt)")
     t.add_argument("--resume", action="store_true",
                    help="continue an interrupted fit from its checkpoint")
+    t.add_argument("--coordinator", metavar="HOST:PORT",
+                   help="fit over several processes (jax.distributed): each runs this command "
+                        "with its own sessions; process 0 writes the outputs")
+    t.add_argument("--num-processes", type=int, help="with --coordinator: how many processes")
+    t.add_argument("--process-id", type=int, help="with --coordinator: this one's (0 .. N-1)")
     _data_options(t)
     t.set_defaults(func=cmd_fit)
 

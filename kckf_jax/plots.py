@@ -40,7 +40,7 @@ def _broken(t: np.ndarray, y: np.ndarray, rows: list[int]) -> tuple[np.ndarray, 
 
 def plot_session(
     session: Session, angles: Mapping[str, np.ndarray], out_dir: str, name: str,
-    gaps: list[dict] = (),
+    gaps: list[dict] = (), nis: Mapping[str, np.ndarray] | None = None,
 ) -> list[str]:
     """Estimates of every method against motion capture, one figure for the joints (Fig. 5
     style) and one for the torso angles (Fig. 6 style). Returns the files written.
@@ -52,6 +52,8 @@ def plot_session(
         name: file name prefix.
         gaps: the gaps of the sensor rows (``Gap.to_json()`` of ``kckf evaluate --json``):
             shaded, and no line is drawn across them.
+        nis: ``{method: (T,) mean normalised innovation squared per row}``: a third figure,
+            the NIS over time (a 1 s running mean) against its ideal 1.
     """
     plt = _plt()
     os.makedirs(out_dir, exist_ok=True)
@@ -84,6 +86,26 @@ def plot_session(
         axes[-1, 0].set_xlabel("time (s)")
         fig.tight_layout()
         path = os.path.join(out_dir, f"{name}_{group}.png")
+        fig.savefig(path, dpi=110)
+        plt.close(fig)
+        files.append(path)
+    if nis:
+        fig, ax = plt.subplots(figsize=(9, 2.6))
+        width = max(int(round(session.sample_rate_hz)), 1)
+        for method, x in nis.items():
+            x = np.asarray(x, np.float64)
+            ok = np.isfinite(x)
+            run = (np.convolve(np.where(ok, x, 0.0), np.ones(width), "same")
+                   / np.maximum(np.convolve(ok.astype(float), np.ones(width), "same"), 1))
+            ax.semilogy(*_broken(session.t - t0, run, rows), label=LABELS.get(method, method),
+                        **STYLES.get(method, {}))
+        ax.axhline(1.0, color="k", lw=0.8, ls="--", label="consistent (1)")
+        ax.set_xlabel("time (s)")
+        ax.set_ylabel("NIS (1 s mean)")
+        ax.grid(alpha=0.3, which="both")
+        ax.legend(fontsize=8)
+        fig.tight_layout()
+        path = os.path.join(out_dir, f"{name}_nis.png")
         fig.savefig(path, dpi=110)
         plt.close(fig)
         files.append(path)

@@ -49,8 +49,14 @@ def test_evaluate_json_layout(session, capsys):
     assert doc["sessions"] == [session]
     for m in ("kckf", "kf", "hall_l"):
         r = doc["methods"][m]
+        kalman = {"nis", "nees"} if m in ("kckf", "kf") else set()
         assert set(r) == {"rmse_deg", "mean_rmse_deg", "per_session", "path", "steps_with_truth",
-                          "steps_scored", "skipped_updates"}
+                          "steps_scored", "skipped_updates"} | kalman
+        if kalman:
+            nis, nees = r["nis"], r["nees"]
+            assert nis["count"] > 1000 and nis["lo95"] < 1.0 < nis["hi95"] and nis["mean"] > 0
+            assert nees["count"] == sum(r["steps_scored"].values())
+            assert nees["lo95"] is None and nees["mean"] > 0
         assert r["path"] == "sequential"  # jittered time stamps, dropped readings
         assert r["steps_scored"] == r["steps_with_truth"] and r["skipped_updates"] == 0
         assert set(r["steps_scored"]) == set(r["rmse_deg"])
@@ -83,7 +89,8 @@ def test_evaluate_table_goes_to_stderr_and_plots(session, tmp_path, capsys):
                           "--method", "gyro", "--plot", str(tmp_path / "fig"))
     assert code == 0 and out == ""
     assert "KCKF" in err and "Gyro" in err and "phi_y" in err
-    assert sorted(os.listdir(tmp_path / "fig")) == ["cli0_s1_joints.png", "cli0_s1_torso.png"]
+    assert sorted(os.listdir(tmp_path / "fig")) == ["cli0_s1_joints.png", "cli0_s1_nis.png",
+                                                     "cli0_s1_torso.png"]
 
 
 def test_filter_writes_estimates_named_as_mocap(session, tmp_path, capsys):

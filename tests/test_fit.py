@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import os
 import signal
+import socket
 import subprocess
 import sys
 import textwrap
@@ -257,3 +258,65 @@ def test_sharded_over_four_devices_equals_one_device():
     assert out["loss4"] == pytest.approx(out["loss1"], rel=1e-12)
     assert out["grad_err"] < 1e-12
     assert np.isfinite(out["fit_loss"])
+
+
+DISTRIBUTED_SCRIPT = textwrap.dedent("""
+    import json, sys
+    import jax
+    jax.config.update("jax_enable_x64", True)
+    rank, port, out = int(sys.argv[1]), sys.argv[2], sys.argv[3]
+    if rank >= 0:  # two processes, each with its own half of the trials
+        jax.config.update("jax_cpu_collectives_implementation", "gloo")
+        jax.distributed.initialize(coordinator_address="127.0.0.1:" + port, num_processes=2,
+                                   process_id=rank)
+    import equinox as eqx, jax.numpy as jnp, numpy as np
+    import kckf_jax as kk
+    everyone = [kk.simulate("x,y", "cyclic", seed=s, duration_s=2.0, device_seed=1,
+                            drop_prob=0.02) for s in range(6)]
+    mine = everyone if rank < 0 else everyone[3 * rank: 3 * rank + 3]
+    val = everyone[:2] if rank < 0 else everyone[rank: rank + 1]
+    params = kk.initial_params(everyone, kk.FitConfig(), jnp.float64)
+    batch = kk.shard_batch(kk.make_batch(mine, jnp.float64))
+    g = eqx.filter_jit(eqx.filter_value_and_grad(lambda p, b: kk.loss_fn(p, b)))
+    loss, grads = g(params, batch)
+    res = kk.fit(mine, val, kk.FitConfig(steps=4), dtype=jnp.float64)
+    leaves = [np.asarray(x).tolist() for x in jax.tree_util.tree_leaves(grads)]
+    fitted = [np.asarray(x).tolist() for x in jax.tree_util.tree_leaves(res.params)]
+    json.dump({"loss": float(loss), "grads": leaves, "fitted": fitted,
+               "history": res.history}, open(out, "w"))
+""")
+
+
+def test_two_processes_fit_as_one(tmp_path):
+    """``jax.distributed`` with two processes on this machine (CPU collectives), each loading
+    only its own trials: the loss, its gradient and a whole fit equal one process's on all
+    the trials (1e-12 in float64)."""
+    script = tmp_path / "dist.py"
+    script.write_text(DISTRIBUTED_SCRIPT)
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = str(s.getsockname()[1])
+    procs = [subprocess.Popen([sys.executable, str(script), str(r), port,
+                               str(tmp_path / f"r{r}.json")], stdout=subprocess.PIPE,
+                              stderr=subprocess.PIPE, text=True) for r in (0, 1)]
+    one = subprocess.run([sys.executable, str(script), "-1", port, str(tmp_path / "one.json")],
+                         capture_output=True, text=True, timeout=600)
+    for p in procs:
+        _, err = p.communicate(timeout=600)
+        assert p.returncode == 0, err[-2000:]
+    assert one.returncode == 0, one.stderr[-2000:]
+    ref = json.loads((tmp_path / "one.json").read_text())
+    for r in (0, 1):
+        got = json.loads((tmp_path / f"r{r}.json").read_text())
+        assert got["loss"] == pytest.approx(ref["loss"], rel=1e-12, abs=1e-15)
+        for a, b in zip(got["grads"], ref["grads"]):
+            np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-15)
+        for a, b in zip(got["fitted"], ref["fitted"]):
+            np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-15)
+        for h, g in zip(ref["history"], got["history"], strict=True):
+            assert set(h) == set(g)
+            for k in h:
+                if h[k] is None or isinstance(h[k], (str, bool)):
+                    assert g[k] == h[k], k
+                else:
+                    assert g[k] == pytest.approx(h[k], rel=1e-12, abs=1e-15), k

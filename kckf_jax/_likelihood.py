@@ -1,0 +1,95 @@
+"""The likelihood of the Hall readings, and the consistency figures built from the same
+innovations.
+
+The filter's innovations are the readings it did not predict: for each joint axis, the fused
+reading of its two Hall sensors minus the predicted angle, with variance ``s`` (the
+``StepMoments`` of the kernel's step). The two sensors of a joint read the same angle, so
+their readings are equivalent to their fused mean and their difference, which is independent
+of the state; and a voltage is read, not an angle, so the density of the voltage has Eq. 1's
+slope as a factor. The negative log-likelihood of every Hall voltage given the earlier ones is
+therefore
+
+    sum over fused readings  1/2 log(2 pi s) + nu^2 / (2 s)
+  + sum over complete pairs  1/2 log(2 pi v) + d^2 / (2 v)     (d = h_l - h_r, v = r_l + r_r)
+  - sum over readings        log |d theta / d V|
+
+(missing readings left out), and it needs no motion capture: the training objective of
+dynamax and cuthbert, here for the constrained filter and learned sensor curves.
+"""
+
+from __future__ import annotations
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from ._hall import hall_slope
+from ._kernel import SensorSeries, hall_measurements
+from ._params import Params
+from ._smooth import filter_moments
+
+
+def _pair_terms(params: Params, hall_v: Float[Array, "*B T M"]):
+    """The state-free terms: each complete pair's difference term and each reading's slope
+    (``-log |d theta / d V|``), summed, and the number of readings."""
+    dtype = params.log_q.dtype
+    v = jnp.asarray(hall_v, dtype)
+    angle, r, valid = jax.vmap(lambda row: hall_measurements(params, row))(
+        v.reshape(-1, v.shape[-1]))
+    pair_ok = valid[:, 0::2] & valid[:, 1::2]
+    d = jnp.where(pair_ok, angle[:, 0::2] - angle[:, 1::2], 0.0)
+    var = jnp.where(pair_ok, r[:, 0::2] + r[:, 1::2], 1.0)
+    pairs = jnp.where(pair_ok, 0.5 * jnp.log(2 * math.pi * var) + 0.5 * d**2 / var, 0.0)
+    slope = jnp.abs(hall_slope(jnp.where(valid, v.reshape(-1, v.shape[-1]), 0.0),
+                               *params.hall_coeffs))
+    # The floor keeps the log finite at a flat stretch of a fitted curve.
+    jac = jnp.where(valid, -jnp.log(jnp.maximum(slope, jnp.finfo(dtype).tiny)), 0.0)
+    return jnp.sum(pairs) + jnp.sum(jac), jnp.sum(valid)
+
+
+def innovations(params: Params, series: SensorSeries, method: str = "kckf"):
+    """Every fused Hall innovation of one trial: ``(nu, s, valid)``, each ``T x Nb x m``."""
+    _, _, _, mom = filter_moments(params, series, method)
+    return mom.nu, mom.s, mom.valid
+
+
+def hall_nll(params: Params, series: SensorSeries, method: str = "kckf") -> Float[Array, ""]:
+    """The negative log-likelihood (nats) of every Hall voltage of ``series`` (one trial ``T``
+    or a batch ``B T``) given the earlier ones, per reading (the module docstring)."""
+    batch = jax.tree_util.tree_map(jnp.asarray, series)
+    if batch.dt.ndim == 1:
+        batch = jax.tree_util.tree_map(lambda x: x[None], batch)
+    nu, s, valid = jax.vmap(lambda x: innovations(params, x, method))(batch)
+    s_safe = jnp.where(valid, s, 1.0)
+    fused = jnp.where(valid, 0.5 * jnp.log(2 * math.pi * s_safe) + 0.5 * nu**2 / s_safe, 0.0)
+    rest, n = _pair_terms(params, batch.hall_v)
+    return (jnp.sum(fused) + rest) / jnp.maximum(n, 1)
+
+
+def chi2_interval(n: int, dof: int = 1) -> tuple[float, float]:
+    """The 95 % interval of the mean of ``n`` independent chi-square variables of ``dof``
+    degrees of freedom each (Wilson and Hilferty's approximation of the quantiles of
+    ``chi2(n dof) / n``)."""
+    k = max(int(n) * dof, 1)
+    out = []
+    for z in (-1.959963984540054, 1.959963984540054):
+        c = 2.0 / (9.0 * k)
+        out.append(k * (1.0 - c + z * math.sqrt(c)) ** 3 / max(int(n), 1))
+    return out[0], out[1]
+
+
+def consistency(terms: np.ndarray, independent: bool = True) -> dict:
+    """``{"mean", "lo95", "hi95", "count"}`` of normalised squared errors (each chi-square
+    with one degree of freedom for a consistent filter).
+
+    The interval is that of the mean of ``count`` independent terms: right for the
+    innovations (a consistent filter's are white), too narrow for the estimation errors of
+    successive rows, which are correlated; ``independent=False`` leaves it out (``None``)."""
+    x = np.asarray(terms, np.float64)
+    x = x[np.isfinite(x)]
+    lo, hi = chi2_interval(x.size) if independent else (None, None)
+    return {"mean": float(x.mean()) if x.size else float("nan"), "lo95": lo, "hi95": hi,
+            "count": int(x.size)}

@@ -1,0 +1,157 @@
+"""The RTS smoother and the likelihood of the Hall readings, against independent NumPy float64
+implementations of the textbook equations (``tests/reference.py``), and their invariants."""
+
+from __future__ import annotations
+
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import reference as R
+from helpers import joints_of, random_params, random_recording, random_robot, reference_params
+from helpers import series_of as make_series
+from jax.test_util import check_grads
+from reference import reference_smoother
+
+from kckf_jax import (
+    Params,
+    Robot,
+    SensorSeries,
+    pad_series,
+    run_filter,
+    simulate,
+    smooth,
+    smooth_batch,
+)
+from kckf_jax._likelihood import chi2_interval, hall_nll
+
+
+@pytest.mark.parametrize("seed", range(4))
+@pytest.mark.parametrize("method", ["kckf", "kf"])
+def test_smoother_matches_numpy_rts(seed, method):
+    """Random robots and parameters, irregular time steps, 10 % missing readings, both noise
+    models: 1e-8 rad against the pseudo-inverse RTS smoother on the paper's full state."""
+    rng = np.random.default_rng(seed)
+    robot = random_robot(rng)
+    params = random_params(rng, robot, hall_noise="voltage" if seed % 2 else "angle")
+    t, gyro, hall_v = random_recording(rng, robot, T=80)
+    ref = reference_smoother(joints_of(robot), t, gyro, hall_v, reference_params(params),
+                             method)
+    est = smooth(params, make_series(t, gyro, hall_v), method)
+    assert est.path == "smoothed"
+    np.testing.assert_allclose(est.angles, ref["angles"], atol=1e-8, rtol=0)
+    np.testing.assert_allclose(est.bias, ref["bias"], atol=1e-8, rtol=0)
+    K = robot.n_angles
+    std = np.sqrt(np.maximum(np.diagonal(ref["P"], axis1=1, axis2=2)[:, :K], 0.0))
+    np.testing.assert_allclose(est.angle_std, std, atol=1e-8, rtol=1e-6)
+    # Smoothing uses later readings: it moves the estimates, the last row excepted.
+    _, filt = run_filter(params, make_series(t, gyro, hall_v), method)
+    assert np.abs(np.asarray(est.angles) - np.asarray(filt.angles))[:-1].max() > 1e-4
+    np.testing.assert_allclose(est.angles[-1], filt.angles[-1], atol=1e-12)
+    if method == "kckf":  # the constraint holds for the smoothed estimates too
+        a = np.asarray(est.angles)
+        np.testing.assert_allclose(a[:, robot.n_joint_axes:],
+                                   a[:, :robot.n_joint_axes] @ robot.torso_sum.T, atol=1e-12)
+
+
+def test_smooth_batch_equals_a_loop_padding_and_float32_hold():
+    robot = Robot.from_spec("x,y,x,y")
+    trials = [simulate(robot, "human", seed=s, duration_s=d, drop_prob=0.02)
+              for s, d in ((1, 3.0), (2, 2.3))]
+    series = [SensorSeries(s.dt(), s.gyro, s.hall_v) for s in trials]
+    params = Params.from_physical(robot, hall_models=trials[0].hall_models, hall_noise="voltage",
+                                  dtype=jnp.float64)
+    batch = smooth_batch(params, pad_series(series))
+    for b, s in enumerate(series):
+        one = smooth(params, s)
+        n = s.dt.shape[0]
+        np.testing.assert_allclose(batch.angles[b, :n], one.angles, atol=1e-12, rtol=0)
+    # float32 over 12,000 rows: finite, positive standard deviations, close to float64.
+    long = simulate(robot, "cyclic", seed=5, duration_s=120.0, drop_prob=0.01)
+    s64 = SensorSeries(long.dt(), long.gyro, long.hall_v)
+    e64 = smooth(params, s64)
+    e32 = smooth(params.astype(jnp.float32),
+                 jax.tree_util.tree_map(lambda x: jnp.asarray(x, jnp.float32), s64))
+    assert np.isfinite(np.asarray(e32.angles)).all()
+    assert (np.asarray(e32.angle_std) > 0).all()
+    assert np.abs(np.asarray(e32.angles, np.float64) - np.asarray(e64.angles)).max() < 1e-3
+
+
+def test_smoother_gradient_is_finite_and_checks():
+    rng = np.random.default_rng(4)
+    robot = Robot.from_spec("x,y")
+    params = random_params(rng, robot, hall_noise="voltage")
+    series = make_series(*random_recording(rng, robot, T=25))
+    diff, static = eqx.partition(params, eqx.is_inexact_array)
+
+    def f(*leaves):
+        d = jax.tree_util.tree_unflatten(jax.tree_util.tree_structure(diff), leaves)
+        return jnp.mean(smooth(eqx.combine(d, static), series).angles ** 2)
+
+    check_grads(f, jax.tree_util.tree_leaves(diff), order=1, modes=["rev"],
+                atol=1e-6, rtol=1e-4, eps=1e-6)
+
+
+def _reference_nll(joints, t, gyro, hall_v, p, method):
+    """-log p(every Hall voltage | the earlier ones) per reading, on the paper's full state:
+    after each prediction and the constraint, the predictive density of the vector of the
+    row's present Hall angles, and each reading's Eq. 1 slope (the voltage's density)."""
+    L = R.layout(joints)
+    N, M = L["N"], L["M"]
+    dt = R._dt(np.asarray(t, float))
+    C, D = R._C(L), R._D(L)
+    x, P, u = np.zeros(N), R._P0(L, p, method), np.zeros(L["n_gyro"])
+    total, count = 0.0, 0
+    for k in range(len(dt)):
+        ts = dt[k]
+        if ts > 0:
+            A = R._A(L, ts)
+            x, P = A @ x + R._B(L, ts) @ u, A @ P @ A.T + R._Q(L, p, ts)
+        if method == "kckf" and ts > 0:  # the perfect measurement first (it is no data)
+            Kg = np.linalg.solve(D @ P @ D.T, D @ P).T
+            x = x + Kg @ (0.0 - D @ x)
+            P = (np.eye(N) - Kg @ D) @ P
+            P = 0.5 * (P + P.T)
+        rows = [m for m in range(M) if np.isfinite(hall_v[k, m])]
+        if rows:
+            H = C[rows]
+            y = np.array([R.hall_angle(hall_v[k, m], p, m) for m in rows])
+            Rm = np.diag([R.hall_variance(hall_v[k, m], p, m) for m in rows])
+            S = H @ P @ H.T + Rm
+            nu = y - H @ x
+            total += 0.5 * (len(rows) * math.log(2 * math.pi) + np.linalg.slogdet(S)[1]
+                            + nu @ np.linalg.solve(S, nu))
+            total -= sum(math.log(abs(R.hall_slope(hall_v[k, m], p, m))) for m in rows)
+            count += len(rows)
+            Kg = np.linalg.solve(S, H @ P).T
+            x = x + Kg @ nu
+            IKH = np.eye(N) - Kg @ H
+            P = IKH @ P @ IKH.T + Kg @ Rm @ Kg.T
+        u = R._update_hold(u, gyro[k])
+    return total / count
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_likelihood_matches_numpy_and_has_gradients(seed):
+    rng = np.random.default_rng(10 + seed)
+    robot = random_robot(rng, max_joints=3)
+    params = random_params(rng, robot, hall_noise="voltage" if seed % 2 else "angle")
+    t, gyro, hall_v = random_recording(rng, robot, T=60)
+    for method in ("kckf", "kf"):
+        ref = _reference_nll(joints_of(robot), t, gyro, hall_v, reference_params(params), method)
+        got = float(hall_nll(params, make_series(t, gyro, hall_v), method))
+        assert got == pytest.approx(ref, rel=1e-9, abs=1e-9), method
+    g = eqx.filter_grad(lambda p: hall_nll(p, make_series(t, gyro, hall_v)))(params)
+    leaves = jax.tree_util.tree_leaves(eqx.filter(g, eqx.is_inexact_array))
+    assert all(np.isfinite(np.asarray(x)).all() for x in leaves)
+    assert np.abs(np.asarray(g.log_sigma_hall_v if seed % 2 else g.log_sigma_hall)).max() > 0
+
+
+def test_chi2_interval():
+    lo, hi = chi2_interval(1000)
+    assert 0.91 < lo < 0.92 and 1.08 < hi < 1.09  # chi2(1000)/1000: 0.9146, 1.0885
+    lo, hi = chi2_interval(100_000)
+    assert 0.99 < lo < 1.0 < hi < 1.01
