@@ -15,6 +15,10 @@ therefore
 
 (missing readings left out), and it needs no motion capture: the training objective of
 dynamax and cuthbert, here for the constrained filter and learned sensor curves.
+
+The innovations of a batch come from the lanes path's scan (``_paths/_lanes.py``, trials as
+lanes: the fast machinery of the RMSE loss on recorded-like data), those of one trial or a few
+from the kernel's step (``_smooth.filter_moments``); the two are the same arithmetic.
 """
 
 from __future__ import annotations
@@ -27,8 +31,10 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from ._hall import hall_slope
-from ._kernel import SensorSeries, hall_measurements
+from ._kernel import SensorSeries, hall_measurements, init_state, plausible
+from ._model import structure
 from ._params import Params
+from ._paths._lanes import Lanes, lane_scan
 from ._smooth import filter_moments
 
 
@@ -56,13 +62,40 @@ def innovations(params: Params, series: SensorSeries, method: str = "kckf"):
     return mom.nu, mom.s, mom.valid
 
 
-def hall_nll(params: Params, series: SensorSeries, method: str = "kckf") -> Float[Array, ""]:
+def lane_innovations(params: Params, batch: SensorSeries, method: str = "kckf",
+                     remat_chunk: int | None = None):
+    """Every fused Hall innovation of a batch (``B T``) from the lanes path's scan:
+    ``(nu, s, valid)``, each ``T x m x Nb x B`` (``innovations``' terms, another layout)."""
+    st = structure(params.robot, method)
+    state = init_state(params, method)
+    dtype = state.z.dtype
+    series = plausible(params, jax.tree_util.tree_map(lambda x: jnp.asarray(x).astype(dtype),
+                                                      batch))
+    B = series.dt.shape[0]
+
+    def each(x):
+        return jnp.broadcast_to(x, (B,) + x.shape)
+
+    *_, rows = lane_scan(params, st, each(state.z), each(state.P), each(state.gyro_hold),
+                         series.dt, series.gyro, series.hall_v, remat_chunk, innovations=True)
+    return rows
+
+
+def hall_nll(params: Params, series: SensorSeries, method: str = "kckf",
+             lanes: bool | None = None) -> Float[Array, ""]:
     """The negative log-likelihood (nats) of every Hall voltage of ``series`` (one trial ``T``
-    or a batch ``B T``) given the earlier ones, per reading (the module docstring)."""
+    or a batch ``B T``) given the earlier ones, per reading (the module docstring).
+    ``lanes``: compute the innovations on the lanes path (default: for a batch of at least
+    ``Lanes.min_trials`` trials); the same value either way, to rounding."""
     batch = jax.tree_util.tree_map(jnp.asarray, series)
     if batch.dt.ndim == 1:
         batch = jax.tree_util.tree_map(lambda x: x[None], batch)
-    nu, s, valid = jax.vmap(lambda x: innovations(params, x, method))(batch)
+    if lanes is None:
+        lanes = batch.dt.shape[0] >= Lanes().min_trials
+    if lanes:
+        nu, s, valid = lane_innovations(params, batch, method)
+    else:
+        nu, s, valid = jax.vmap(lambda x: innovations(params, x, method))(batch)
     s_safe = jnp.where(valid, s, 1.0)
     fused = jnp.where(valid, 0.5 * jnp.log(2 * math.pi * s_safe) + 0.5 * nu**2 / s_safe, 0.0)
     rest, n = _pair_terms(params, batch.hall_v)

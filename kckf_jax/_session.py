@@ -345,7 +345,8 @@ def read_session(path: str | os.PathLike, *, require_mocap: bool = False,
     elif require_mocap:
         raise SessionError(
             f"{mocap_path}: file not found; motion capture (t and {', '.join(robot.angle_names)})"
-            " is needed to fit or evaluate"
+            " is needed to evaluate or to fit on the RMSE (kckf fit --loss nll fits on the Hall"
+            " readings alone)"
         )
 
     session = Session(

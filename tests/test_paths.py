@@ -256,7 +256,10 @@ def test_lanes_equal_sequential_on_recorded_like_data(spec):
     batch = SensorSeries(dt, plain.gyro, plain.hall_v)
     p64 = Params.from_physical(robot, hall_models=s.hall_models, hall_noise="voltage",
                                dtype=jnp.float64)
-    assert choose_path(p64, batch, "kckf").path == Lanes()
+    assert choose_path(p64, batch, "kckf", Auto(lanes=Lanes(min_trials=8))).path == Lanes(
+        min_trials=8)
+    few = choose_path(p64, batch, "kckf")  # the default: lanes pay from 12 trials
+    assert few.path == Sequential() and "fewer than 12" in few.passed_over["lanes"]
     ref = filter_batch(p64, batch, "kckf", path="sequential")
     got = filter_batch(p64, batch, "kckf", path="lanes")
     assert got.path == "lanes"

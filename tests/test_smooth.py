@@ -155,3 +155,22 @@ def test_chi2_interval():
     assert 0.91 < lo < 0.92 and 1.08 < hi < 1.09  # chi2(1000)/1000: 0.9146, 1.0885
     lo, hi = chi2_interval(100_000)
     assert 0.99 < lo < 1.0 < hi < 1.01
+
+
+def test_likelihood_on_lanes_equals_the_step_values_and_gradients():
+    """A batch (uneven trials, padded; missing readings, irregular steps, the voltage model):
+    the lanes path's innovations give the kernel step's likelihood and gradients, float64."""
+    rng = np.random.default_rng(40)
+    robot = random_robot(rng, max_joints=3)
+    params = random_params(rng, robot, hall_noise="voltage")
+    trials = [make_series(*random_recording(rng, robot, T=int(T)))
+              for T in rng.integers(30, 50, size=8)]
+    batch = pad_series(trials)
+    for method in ("kckf", "kf"):
+        seq = float(hall_nll(params, batch, method, lanes=False))
+        assert float(hall_nll(params, batch, method, lanes=True)) == pytest.approx(seq, rel=1e-12)
+    grads = [eqx.filter_grad(lambda p, lanes=lanes: hall_nll(p, batch, lanes=lanes))(params)
+             for lanes in (False, True)]
+    a, b = (jax.tree_util.tree_leaves(eqx.filter(g, eqx.is_inexact_array)) for g in grads)
+    for x, y in zip(a, b):
+        np.testing.assert_allclose(np.asarray(y), np.asarray(x), rtol=1e-9, atol=1e-12)

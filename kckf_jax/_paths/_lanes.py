@@ -86,11 +86,13 @@ class _Consts:
         self.cols = {n: np.array([j for _, j in _tri(n)]) for n in (nz, ny)}
 
 
-def lane_step(st: Structure, consts: _Consts, z, P, rates, noise, hb, rb, vb, ts):
+def lane_step(st: Structure, consts: _Consts, z, P, rates, noise, hb, rb, vb, ts,
+              innovations: bool = False):
     """One block step on lanes: ``z`` (``Nz, Nb, B``), ``P`` (upper triangle, ``n_tri, Nb,
     B``), ``rates`` (``m1, Nb, B``), ``noise = (alpha, beta, gamma)`` (``m1, Nb, B`` each),
     ``hb, rb, vb`` (``m, Nb, B``), ``ts`` (``Nb, B``). Returns the new ``(z, P)`` (the
-    kernel's ``block_update``)."""
+    kernel's ``block_update``); ``innovations``: also each joint's fused Hall innovation and
+    its variance, ``(nu, s)`` (``m, Nb, B`` each; the kernel's ``block_step``)."""
     c = consts
     nz, ny = st.n_z, st.n_z + st.n_e
     # Predicted mean and covariance (Eqs. 3, 9-13).
@@ -104,8 +106,13 @@ def lane_step(st: Structure, consts: _Consts, z, P, rates, noise, hb, rb, vb, ts
         e = nz + i
         y, S = _update(c, ny, y, S, e, -y[e], jnp.zeros_like(ts), ts > 0)
     z, P = y[:nz], S[c.restrict] if st.n_e else S
+    nus, ss = [], []
     for i in range(st.m):
-        z, P = _update(c, nz, z, P, i, hb[i] - z[i], rb[i], vb[i])
+        nus.append(hb[i] - z[i])
+        ss.append(P[c.index[nz][i, i]] + rb[i])
+        z, P = _update(c, nz, z, P, i, nus[-1], rb[i], vb[i])
+    if innovations:
+        return z, P, (jnp.stack(nus), jnp.stack(ss))
     return z, P
 
 
@@ -149,12 +156,15 @@ def row_inputs(params: Params, st: Structure, dt: Float[Array, "T B"],
 def lane_scan(params: Params, st: Structure, z0: Float[Array, "B Nb Nz"],
               P0: Float[Array, "B Nb Nz Nz"], hold0: Float[Array, "B G"],
               dt: Float[Array, "B T"], gyro: Float[Array, "B T G"],
-              hall_v: Float[Array, "B T M"], remat_chunk: int | None = None):
+              hall_v: Float[Array, "B T M"], remat_chunk: int | None = None,
+              innovations: bool = False):
     """The Kalman filter over ``T`` rows of ``B`` trials, trials as lanes.
 
     Returns ``(zT, PT, holdT, rows)``: the final states (``B`` first, as given) and per row
     ``(z, P upper triangle, skipped)`` with the rows first and trials last:
-    ``(T, Nz, Nb, B)``, ``(T, n_tri, Nb, B)``, ``(T, B)``."""
+    ``(T, Nz, Nb, B)``, ``(T, n_tri, Nb, B)``, ``(T, B)``. ``innovations``: ``rows`` is
+    ``(nu, s, valid)`` instead (``T, m, Nb, B`` each), every joint's fused Hall innovation,
+    its variance and whether it was used (the likelihood's terms; no estimates kept)."""
     robot = params.robot
     dtype = z0.dtype
     nz = st.n_z
@@ -192,12 +202,15 @@ def lane_scan(params: Params, st: Structure, z0: Float[Array, "B Nb Nz"],
         x, hold = carry
         ts, (alpha, beta, gamma), hb_r, rb_r, vb_r, g_r = row
         tsb = jnp.broadcast_to(ts, (nb,) + ts.shape)
-        z_new, P_new = lane_step(st, consts, x[:nz], x[nz:], rates_of(hold),
-                                 (alpha, beta, gamma), hb_r, rb_r, vb_r, tsb)
-        x_new = jnp.concatenate([z_new, P_new])
+        out = lane_step(st, consts, x[:nz], x[nz:], rates_of(hold), (alpha, beta, gamma),
+                        hb_r, rb_r, vb_r, tsb, innovations)
+        x_new = jnp.concatenate(out[:2])
         fin = jnp.isfinite(x_new).all(axis=(0, 1))
         x_new = jnp.where(fin, x_new, x)
         hold = jnp.where(fin & jnp.isfinite(g_r), g_r, hold)
+        if innovations:
+            nu, s = out[2]
+            return (x_new, hold), (nu, s, vb_r & fin)
         return (x_new, hold), (x_new, ~fin)
 
     x0 = jnp.stack([jnp.moveaxis(z0[:, :, i], 0, 1) for i in range(nz)]
@@ -205,13 +218,15 @@ def lane_scan(params: Params, st: Structure, z0: Float[Array, "B Nb Nz"],
     hold = jnp.moveaxis(hold0[:, used], 0, 1)
     rows = (ts_rows, noise, hb, rb, vb, g)
     if remat_chunk:
-        final, (xs, skipped) = _chunked_scan(body, (x0, hold), rows, remat_chunk)
+        final, out = _chunked_scan(body, (x0, hold), rows, remat_chunk)
     else:
         # Each row recomputed under reverse mode (only the carries saved): the transposed
         # body then runs as one piece (64 x 10,000 bench, float32: gradient 3.7 -> 3.0 s).
-        final, (xs, skipped) = jax.lax.scan(jax.checkpoint(body), (x0, hold), rows)
+        final, out = jax.lax.scan(jax.checkpoint(body), (x0, hold), rows)
+    if not innovations:
+        xs, skipped = out
+        out = (xs[:, :nz], xs[:, nz:], skipped)
     xT, holdT = final
-    out = (xs[:, :nz], xs[:, nz:], skipped)
     zT, PT = list(xT[:nz]), list(xT[nz:])
     zT = jnp.moveaxis(jnp.stack(zT), (0, 1, 2), (2, 1, 0))  # (B, Nb, Nz)
     PT_full = jnp.zeros((z0.shape[0], nb, nz, nz), dtype)
@@ -291,7 +306,7 @@ class Lanes(AbstractPath):
     """
 
     name: ClassVar[str] = "lanes"
-    min_trials: int = eqx.field(static=True, default=8)
+    min_trials: int = eqx.field(static=True, default=12)
     remat_chunk: int | None = eqx.field(static=True, default=None)
 
     def applies(self, params: Params, series: SensorSeries, method: str,
