@@ -24,12 +24,12 @@ import subprocess
 import sys
 import time
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
 sys.path.insert(0, os.path.dirname(__file__))
 from _machine import machine  # noqa: E402
+from recorded import timed, trials  # noqa: E402  (the same data and timing)
 
 import kckf_jax as kk  # noqa: E402
 
@@ -39,24 +39,6 @@ SPEC = "x,y,x,y"
 def log(msg):
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6
     print(f"[peak {rss:5.1f} GB] {msg}", file=sys.stderr, flush=True)
-
-
-def timed(fn, repeats=2):
-    t0 = time.perf_counter()
-    out = jax.block_until_ready(fn())
-    first = time.perf_counter() - t0
-    best = np.inf
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        out = jax.block_until_ready(fn())
-        best = min(best, time.perf_counter() - t0)
-    return out, best, first
-
-
-def trials(robot, n, steps, seed0=0):
-    base = [kk.simulate(robot, "cyclic", seed=seed0 + i, duration_s=steps / 100.0,
-                        drop_prob=0.01, device_seed=1) for i in range(min(n, 16))]
-    return [base[i % len(base)] for i in range(n)]
 
 
 def constraint_violation(est, robot) -> float:
@@ -82,8 +64,8 @@ def main():
     hour = kk.simulate(robot, "static", seed=3, duration_s=L / 100.0, drop_prob=0.01)
     p32 = kk.initial_params([hour], kk.FitConfig(), jnp.float32)
     ser = kk.session_series(hour, jnp.float32)
-    est, t, first = timed(lambda: kk.smooth(p32, ser))
-    _, tf, ff = timed(lambda: kk.run_filter(p32, ser)[1].angles)
+    est, t, first = timed(lambda: kk.smooth(p32, ser), repeats=2)
+    _, tf, _ = timed(lambda: kk.run_filter(p32, ser)[1].angles, repeats=2)
     std = np.asarray(est.angle_std)
     res["hour"] = {
         "rows": L, "smooth_s": round(t, 3), "smooth_steps_per_s": round(L / t),
@@ -100,8 +82,8 @@ def main():
     sess = trials(robot, B, T)
     batch = kk.pad_series([kk.session_series(s, np.float32) for s in sess])
     pb = kk.initial_params(sess, kk.FitConfig(), jnp.float32)
-    _, t, first = timed(lambda: kk.smooth_batch(pb, batch).angles)
-    _, tf, _ = timed(lambda: kk.filter_batch(pb, batch, "kckf").angles)
+    _, t, first = timed(lambda: kk.smooth_batch(pb, batch).angles, repeats=2)
+    _, tf, _ = timed(lambda: kk.filter_batch(pb, batch, "kckf").angles, repeats=2)
     res["batch"] = {"trials": B, "rows": T, "smooth_s": round(t, 3),
                     "smooth_trial_steps_per_s": round(B * T / t),
                     "smooth_compile_s": round(first - t, 2), "filter_s": round(tf, 3),

@@ -393,25 +393,34 @@ def scan_filter(
 
     if not remat_chunk:
         return jax.lax.scan(body, state, series)
-    T = series.dt.shape[0]
-    c = int(remat_chunk)
-    n = -(-T // c)
-    pad = n * c - T
     # Padding rows (dt = 0, every reading missing) are no-op steps.
-    padded = SensorSeries(
-        jnp.pad(series.dt, (0, pad)),
-        jnp.pad(series.gyro, ((0, pad), (0, 0)), constant_values=jnp.nan),
-        jnp.pad(series.hall_v, ((0, pad), (0, 0)), constant_values=jnp.nan),
-    )
-    chunks = jax.tree_util.tree_map(lambda x: x.reshape((n, c) + x.shape[1:]), padded)
+    return chunked_scan(body, state, series, int(remat_chunk), (0.0, jnp.nan, jnp.nan))
+
+
+def chunked_scan(body, carry, rows, chunk: int, fill):
+    """``lax.scan(body, carry, rows)`` in checkpointed chunks of ``chunk`` rows (each chunk's
+    intermediates recomputed under reverse mode): the rows padded at the end with ``fill``
+    (one scalar per leaf of ``rows``, in ``tree_leaves`` order, making no-op rows), the
+    outputs cut back to ``T``."""
+    T = jax.tree_util.tree_leaves(rows)[0].shape[0]
+    n = -(-T // chunk)
+    pad = n * chunk - T
+
+    def padded(x, value):
+        return jnp.pad(x, [(0, pad)] + [(0, 0)] * (x.ndim - 1), constant_values=value)
+
+    leaves, tree = jax.tree_util.tree_flatten(rows)
+    rows = jax.tree_util.tree_unflatten(tree, [padded(x, v) for x, v in zip(leaves, fill,
+                                                                             strict=True)])
+    chunks = jax.tree_util.tree_map(lambda x: x.reshape((n, chunk) + x.shape[1:]), rows)
 
     @jax.checkpoint
-    def chunk_body(carry, rows):
-        return jax.lax.scan(body, carry, rows)
+    def chunk_body(c, r):
+        return jax.lax.scan(body, c, r)
 
-    final, est = jax.lax.scan(chunk_body, state, chunks)
-    est = jax.tree_util.tree_map(lambda x: x.reshape((n * c,) + x.shape[2:])[:T], est)
-    return final, est
+    final, out = jax.lax.scan(chunk_body, carry, chunks)
+    out = jax.tree_util.tree_map(lambda x: x.reshape((n * chunk,) + x.shape[2:])[:T], out)
+    return final, out
 
 
 def pad_trials(series: list, length: int | None = None, what: str = "pad_series"):

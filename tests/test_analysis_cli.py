@@ -92,3 +92,20 @@ def test_the_likelihood_losses_go_down(session, loss):
 def test_fit_config_names_the_losses():
     with pytest.raises(ValueError, match="rmse, nll, rmse\\+nll"):
         FitConfig(loss="likelihood")
+
+
+def test_the_command_keeps_compiled_programs_between_runs(session, tmp_path):
+    """``$KCKF_CACHE_DIR``: the second run of a command loads what the first compiled."""
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k != "JAX_COMPILATION_CACHE_DIR"}
+    env["KCKF_CACHE_DIR"] = str(tmp_path / "cache")
+    argv = [sys.executable, "-m", "kckf_jax", "filter", session, "-o", str(tmp_path / "e.csv"),
+            "--quiet"]
+    r = subprocess.run(argv, env=env, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert os.listdir(tmp_path / "cache")  # compiled programs written
+    env["KCKF_CACHE_DIR"] = ""  # off
+    r = subprocess.run(argv, env=env, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]

@@ -134,7 +134,7 @@ def _reference_nll(joints, t, gyro, hall_v, p, method):
     return total / count
 
 
-@pytest.mark.parametrize("seed", range(3))
+@pytest.mark.parametrize("seed", range(2))  # the angle and the voltage noise model
 def test_likelihood_matches_numpy_and_has_gradients(seed):
     rng = np.random.default_rng(10 + seed)
     robot = random_robot(rng, max_joints=3)

@@ -60,6 +60,7 @@ def fixed_lag(test, params, lags_rows, per_session: int, burn_in_rows: int, seed
     err = {lag: [] for lag in lags_rows}
     for s in test:
         base = session_series(s, np.float64)
+        parts = (base.dt, base.gyro, base.hall_v)
         truth = s.truth()
         ok = np.flatnonzero(np.isfinite(truth).all(axis=1))
         ok = ok[(ok >= burn_in_rows) & (ok < s.n_steps - max(lags_rows) - 1)]
@@ -68,7 +69,7 @@ def fixed_lag(test, params, lags_rows, per_session: int, burn_in_rows: int, seed
             cut = []
             for t in rows:
                 end = t + lag + 1
-                dt, gyro, hall = (np.array(x, np.float64) for x in base)
+                dt, gyro, hall = (np.array(x, np.float64) for x in parts)
                 dt[end:], gyro[end:], hall[end:] = 0.0, np.nan, np.nan
                 cut.append(SensorSeries(dt, gyro, hall))
             est = np.asarray(smooth_batch(params, pad_series(cut)).angles, np.float64)

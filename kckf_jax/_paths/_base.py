@@ -20,11 +20,17 @@ import numpy as np
 from jaxtyping import Array, Bool, Float
 
 from .._kernel import Estimate, FilterState, SensorSeries
+from .._model import FILTER_METHODS
 from .._params import Params
 from .._robot import Robot
 
 #: Two time steps closer than this (s) count as equal: a constant step to the filter.
 STEP_TOL_S = 1e-9
+
+
+def kalman_only(method: str) -> str | None:
+    """Why a path that computes a Kalman filter does not apply to ``method`` (or ``None``)."""
+    return None if method in FILTER_METHODS else f"method {method!r} is not a Kalman filter"
 
 
 class AbstractPath(eqx.Module):

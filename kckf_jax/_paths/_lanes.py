@@ -24,10 +24,18 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from .._kernel import Estimate, FilterState, SensorSeries, fused_pairs, hall_measurements, plausible
-from .._model import FILTER_METHODS, Structure, block_gather, q_blocks, structure
+from .._kernel import (
+    Estimate,
+    FilterState,
+    SensorSeries,
+    chunked_scan,
+    fused_pairs,
+    hall_measurements,
+    plausible,
+)
+from .._model import Structure, block_gather, q_blocks, structure
 from .._params import Params
-from ._base import AbstractPath
+from ._base import AbstractPath, kalman_only
 
 
 def _tri(n: int) -> list[tuple[int, int]]:
@@ -218,7 +226,9 @@ def lane_scan(params: Params, st: Structure, z0: Float[Array, "B Nb Nz"],
     hold = jnp.moveaxis(hold0[:, used], 0, 1)
     rows = (ts_rows, noise, hb, rb, vb, g)
     if remat_chunk:
-        final, out = _chunked_scan(body, (x0, hold), rows, remat_chunk)
+        # No-op rows pad the last chunk: no time step, every reading missing.
+        fill = (0.0,) + (0.0,) * len(noise) + (0.0, 1.0, False, jnp.nan)  # tree_leaves order
+        final, out = chunked_scan(body, (x0, hold), rows, remat_chunk, fill)
     else:
         # Each row recomputed under reverse mode (only the carries saved): the transposed
         # body then runs as one piece (64 x 10,000 bench, float32: gradient 3.7 -> 3.0 s).
@@ -235,32 +245,6 @@ def lane_scan(params: Params, st: Structure, z0: Float[Array, "B Nb Nz"],
         PT_full = PT_full.at[:, :, i, j].set(x).at[:, :, j, i].set(x)
     hold_full = hold0.at[:, used].set(jnp.moveaxis(holdT, 0, 1))
     return zT, PT_full, hold_full, out
-
-
-def _chunked_scan(body, carry, rows, chunk: int):
-    """``lax.scan(body, carry, rows)`` in checkpointed chunks of ``chunk`` rows (the rows
-    padded with no-op rows: ``dt = 0``, every reading missing)."""
-    T = rows[0].shape[0]
-    n = -(-T // chunk)
-    pad = n * chunk - T
-
-    def padded(x, fill):
-        return jnp.pad(x, [(0, pad)] + [(0, 0)] * (x.ndim - 1), constant_values=fill)
-
-    ts, noise, hb, rb, vb, g = rows
-    rows = (padded(ts, 0.0), tuple(padded(x, 0.0) for x in noise), padded(hb, 0.0),
-            padded(rb, 1.0), padded(vb, False), padded(g, jnp.nan))
-    chunks = jax.tree_util.tree_map(lambda x: x.reshape((n, chunk) + x.shape[1:]), rows)
-
-    @jax.checkpoint
-    def chunk_body(c, r):
-        return jax.lax.scan(body, c, r)
-
-    final, out = jax.lax.scan(chunk_body, carry, chunks)
-    out = jax.tree_util.tree_map(lambda x: x.reshape((n * chunk,) + x.shape[2:])[:T], out)
-    return final, out
-
-
 
 
 def lane_estimates(st: Structure, z_rows: Float[Array, "T Nz Nb B"],
@@ -311,9 +295,7 @@ class Lanes(AbstractPath):
 
     def applies(self, params: Params, series: SensorSeries, method: str,
                 state: FilterState | None = None) -> str | None:
-        if method not in FILTER_METHODS:
-            return f"method {method!r} is not a Kalman filter"
-        return None
+        return kalman_only(method)
 
     def run(self, params: Params, series: SensorSeries, method: str, state: FilterState
             ) -> tuple[FilterState, Estimate]:

@@ -17,10 +17,10 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from .._kernel import Estimate, FilterState, SensorSeries, block_estimate, plausible
-from .._model import FILTER_METHODS, structure
+from .._model import structure
 from .._params import Params
 from ._affine import covariance_phase, series_inputs
-from ._base import AbstractPath
+from ._base import AbstractPath, kalman_only
 
 
 class Parallel(AbstractPath):
@@ -31,9 +31,7 @@ class Parallel(AbstractPath):
 
     def applies(self, params: Params, series: SensorSeries, method: str,
                 state: FilterState | None = None) -> str | None:
-        if method not in FILTER_METHODS:
-            return f"method {method!r} is not a Kalman filter"
-        return None
+        return kalman_only(method)
 
     def run(self, params: Params, series: SensorSeries, method: str, state: FilterState
             ) -> tuple[FilterState, Estimate]:

@@ -34,7 +34,7 @@ from .._kernel import (
     init_state,
     plausible,
 )
-from .._model import FILTER_METHODS, Structure, structure
+from .._model import Structure, structure
 from .._params import Params
 from ._affine import (
     covariance_phase,
@@ -45,7 +45,7 @@ from ._affine import (
     series_inputs,
     step_maps,
 )
-from ._base import AbstractPath, is_traced, regular_step, relative_change
+from ._base import AbstractPath, is_traced, kalman_only, regular_step, relative_change
 from ._chunks import ChunkPlan, chunk_operator, chunk_rows, raw_readings
 from ._row_scan import row_scan
 
@@ -96,8 +96,8 @@ class Steady(AbstractPath):
 
     def model_reason(self, params: Params, method: str) -> str | None:
         """Why the filter itself (whatever the data) never becomes a constant map, or None."""
-        if method not in FILTER_METHODS:
-            return f"method {method!r} is not a Kalman filter"
+        if kalman_only(method):
+            return kalman_only(method)
         if method == "kf":
             return ("the standard KF's torso angle and bias are unobservable (Eq. 21): its "
                     "covariance never converges")
