@@ -553,27 +553,6 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def _compilation_cache() -> None:
-    """Keep compiled programs between runs of the command (XLA's persistent cache): a second
-    ``kckf evaluate`` of the same shapes loads what the first compiled instead of compiling
-    again. In ``$KCKF_CACHE_DIR`` (default ``~/.cache/kckf-jax/xla``; empty: off); a cache
-    that JAX was given already (``JAX_COMPILATION_CACHE_DIR``) is left as it is."""
-    if "JAX_COMPILATION_CACHE_DIR" in os.environ:
-        return
-    path = os.environ.get("KCKF_CACHE_DIR",
-                          os.path.join(os.path.expanduser("~"), ".cache", "kckf-jax", "xla"))
-    if not path:
-        return
-    try:
-        os.makedirs(path, exist_ok=True)
-    except OSError:
-        return  # a read-only home: compile every time
-    import jax
-
-    jax.config.update("jax_compilation_cache_dir", path)
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
-
-
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -584,7 +563,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         import jax
 
         jax.config.update("jax_enable_x64", True)
-    _compilation_cache()
+    from ._cache import keep_compiled_programs
+
+    keep_compiled_programs()
     try:
         return int(args.func(args) or 0)
     except KeyboardInterrupt:

@@ -174,3 +174,19 @@ def test_likelihood_on_lanes_equals_the_step_values_and_gradients():
     a, b = (jax.tree_util.tree_leaves(eqx.filter(g, eqx.is_inexact_array)) for g in grads)
     for x, y in zip(a, b):
         np.testing.assert_allclose(np.asarray(y), np.asarray(x), rtol=1e-9, atol=1e-12)
+
+
+def test_likelihood_gradient_matches_finite_differences():
+    """The likelihood's reverse mode against central differences (float64), voltage model."""
+    rng = np.random.default_rng(7)
+    robot = Robot.from_spec("x,y")
+    params = random_params(rng, robot, hall_noise="voltage")
+    series = make_series(*random_recording(rng, robot, T=25))
+    leaves, tree = jax.tree_util.tree_flatten(eqx.filter(params, eqx.is_inexact_array))
+    rest = eqx.filter(params, eqx.is_inexact_array, inverse=True)
+
+    def f(*xs):
+        p = eqx.combine(jax.tree_util.tree_unflatten(tree, list(xs)), rest)
+        return hall_nll(p, series)
+
+    check_grads(f, leaves, order=1, modes=["rev"], atol=1e-5, rtol=1e-5)
