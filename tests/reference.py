@@ -243,15 +243,18 @@ def reference_filter(joints, t, gyro, hall_v, params, method) -> dict:
 
     xs = np.zeros((T_len, N))
     Ps = np.zeros((T_len, N, N))
+    xp, Pp, As = np.zeros((T_len, N)), np.zeros((T_len, N, N)), np.zeros((T_len, N, N))
     for k in range(T_len):
         ts = dt[k]
         # --- Prediction (Eq. 3 with A Eq. 11, B Eq. 12, Q Eq. 13), held rates of row k-1.
+        A = np.eye(N)
         if ts > 0:
             A = _A(L, ts)
             B = _B(L, ts)
             Q = _Q(L, params, ts)
             x = A @ x + B @ u_hold
             P = A @ P @ A.T + Q
+        xp[k], Pp[k], As[k] = x, P, A  # the prediction of row k (the smoother's)
 
         # --- Measurement update (Eqs. 4, 8 / 16, 18-20).
         H_rows, y_rows, r_rows = [], [], []
@@ -283,7 +286,8 @@ def reference_filter(joints, t, gyro, hall_v, params, method) -> dict:
         # --- Gyro hold takes row k's finite values after the update of step k.
         u_hold = _update_hold(u_hold, gyro[k])
 
-    return dict(angles=xs[:, :K].copy(), bias=xs[:, K:].copy(), P=Ps, x=xs)
+    return dict(angles=xs[:, :K].copy(), bias=xs[:, K:].copy(), P=Ps, x=xs, x_pred=xp,
+                P_pred=Pp, A=As)
 
 
 # ---------------------------------------------------------------------------------------
@@ -349,52 +353,14 @@ def observability_rank(joints, constrained: bool, ts=0.01) -> int:
 def reference_smoother(joints, t, gyro, hall_v, params, method) -> dict:
     """The RTS smoother over ``reference_filter``'s recursion, in the paper's coordinates.
 
-    Forward: the filter of ``reference_filter`` (prediction, then every measurement row,
-    Joseph form), keeping each row's prediction. Backward (Rauch, Tung and Striebel 1965):
+    Forward: ``reference_filter`` itself (prediction, then every measurement row, Joseph
+    form), which keeps each row's prediction. Backward (Rauch, Tung and Striebel 1965):
     ``G_k = P_k A' pinv(P^-_{k+1})``, ``x^s_k = x_k + G_k (x^s_{k+1} - x^-_{k+1})``,
     ``P^s_k = P_k + G_k (P^s_{k+1} - P^-_{k+1}) G_k'``. The KCKF's perfect measurement leaves
     ``P`` singular in the constraint's direction, hence the pseudo-inverse (float64)."""
-    L = layout(joints)
-    K, N, M = L["K"], L["N"], L["M"]
-    t = np.asarray(t, dtype=float)
-    gyro = np.asarray(gyro, dtype=float)
-    hall_v = np.asarray(hall_v, dtype=float)
-    T_len = t.shape[0]
-    dt = _dt(t)
-    C, D = _C(L), _D(L)
-    x = np.zeros(N)
-    P = _P0(L, params, method)
-    u_hold = np.zeros(L["n_gyro"])
-    xs, Ps = np.zeros((T_len, N)), np.zeros((T_len, N, N))
-    xp, Pp, As = np.zeros((T_len, N)), np.zeros((T_len, N, N)), np.zeros((T_len, N, N))
-    for k in range(T_len):
-        ts = dt[k]
-        A = np.eye(N)
-        if ts > 0:
-            A = _A(L, ts)
-            x = A @ x + _B(L, ts) @ u_hold
-            P = A @ P @ A.T + _Q(L, params, ts)
-        xp[k], Pp[k], As[k] = x, P, A
-        H_rows, y_rows, r_rows = [], [], []
-        for m in range(M):
-            V = hall_v[k, m]
-            if np.isfinite(V):
-                H_rows.append(C[m])
-                y_rows.append(hall_angle(V, params, m))
-                r_rows.append(hall_variance(V, params, m))
-        if method == "kckf" and ts > 0:
-            for p in range(L["P"]):
-                H_rows.append(D[p])
-                y_rows.append(0.0)
-                r_rows.append(0.0)
-        if H_rows:
-            H, y, R = np.array(H_rows), np.array(y_rows), np.diag(np.array(r_rows))
-            Kg = np.linalg.solve(H @ P @ H.T + R, H @ P.T).T
-            x = x + Kg @ (y - H @ x)
-            IKH = np.eye(N) - Kg @ H
-            P = IKH @ P @ IKH.T + Kg @ R @ Kg.T
-        xs[k], Ps[k] = x, P
-        u_hold = _update_hold(u_hold, gyro[k])
+    f = reference_filter(joints, t, gyro, hall_v, params, method)
+    xs, Ps, xp, Pp, As = f["x"], f["P"], f["x_pred"], f["P_pred"], f["A"]
+    K, T_len = layout(joints)["K"], xs.shape[0]
     x_s, P_s = xs.copy(), Ps.copy()
     for k in range(T_len - 2, -1, -1):
         G = Ps[k] @ As[k + 1].T @ np.linalg.pinv(Pp[k + 1], rcond=1e-13, hermitian=True)
