@@ -9,7 +9,10 @@ starting point, float32.
 Cases: ``smooth`` of one recorded-like hour (360,000 rows), with ``run_filter`` on the same
 rows for comparison and the float32 health of the smoothed hour (NaN count, the smallest
 smoothed standard deviation, the largest violation of the constraint ``phi = sum theta``);
-``smooth_batch`` of 64 trials x 10,000 rows beside ``filter_batch``; one fitting step through
+``smooth`` of one regular hour (constant 10 ms step, every reading, the paper's parameters:
+the steady filter and the steady smoother) beside ``run_filter``; ``smooth_batch`` of 64
+trials x 10,000 rows beside ``filter_batch`` (lanes, and the vmapped sequential smoother for
+comparison); one fitting step through
 ``fit`` with ``loss="nll"`` and with ``loss="rmse"`` on 64 x 10,000 rows (6 steps, the first
 compiles; the median of the other 5).
 """
@@ -77,14 +80,38 @@ def main():
         "max_constraint_violation_rad": constraint_violation(est, robot)}
     log(str(res["hour"]))
 
+    log(f"one regular hour, {L} rows")
+    clean = kk.simulate(robot, "static", seed=3, duration_s=L / 100.0, drop_prob=0.0)
+    dt = np.full(len(clean.gyro), 0.01)
+    dt[0] = 0.0
+    reg = kk.SensorSeries(jnp.asarray(dt, jnp.float32), jnp.asarray(clean.gyro, jnp.float32),
+                          jnp.asarray(clean.hall_v, jnp.float32))
+    p_reg = kk.Params.paper_defaults(robot, dtype=jnp.float32)
+    est, t, first = timed(lambda: kk.smooth(p_reg, reg), repeats=2)
+    _, tf, _ = timed(lambda: kk.run_filter(p_reg, reg)[1].angles, repeats=2)
+    res["regular_hour"] = {
+        "rows": L, "smooth_path": est.path, "smooth_s": round(t, 3),
+        "smooth_steps_per_s": round(L / t), "smooth_compile_s": round(first - t, 2),
+        "filter_s": round(tf, 3), "filter_path": kk.choose_path(p_reg, reg, "kckf").path.name,
+        "smooth_over_filter_time": round(t / tf, 2),
+        "nan_count": int(np.isnan(np.asarray(est.angles)).sum()),
+        "max_constraint_violation_rad": constraint_violation(est, robot)}
+    if not args.quick:
+        _, ts, _ = timed(lambda: kk.smooth(p_reg, reg, path="sequential").angles, repeats=1)
+        res["regular_hour"]["sequential_smooth_s"] = round(ts, 3)
+    log(str(res["regular_hour"]))
+
     B, T = (8, 2000) if args.quick else (64, 10_000)
     log(f"{B} trials x {T} rows")
     sess = trials(robot, B, T)
     batch = kk.pad_series([kk.session_series(s, np.float32) for s in sess])
     pb = kk.initial_params(sess, kk.FitConfig(), jnp.float32)
-    _, t, first = timed(lambda: kk.smooth_batch(pb, batch).angles, repeats=2)
+    est, t, first = timed(lambda: kk.smooth_batch(pb, batch), repeats=2)
     _, tf, _ = timed(lambda: kk.filter_batch(pb, batch, "kckf").angles, repeats=2)
-    res["batch"] = {"trials": B, "rows": T, "smooth_s": round(t, 3),
+    _, tseq, _ = timed(lambda: kk.smooth_batch(pb, batch, path="sequential").angles,
+                       repeats=1)
+    res["batch"] = {"trials": B, "rows": T, "smooth_path": est.path, "smooth_s": round(t, 3),
+                    "sequential_smooth_s": round(tseq, 3),
                     "smooth_trial_steps_per_s": round(B * T / t),
                     "smooth_compile_s": round(first - t, 2), "filter_s": round(tf, 3),
                     "filter_path": kk.choose_path(pb, batch, "kckf").path.name,

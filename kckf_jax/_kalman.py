@@ -64,3 +64,25 @@ def row_update(
 def symmetrise(P: Float[Array, "*b N N"]) -> Float[Array, "*b N N"]:
     """``(P + P') / 2``: removes the rounding asymmetry the updates leave."""
     return 0.5 * (P + jnp.swapaxes(P, -1, -2))
+
+
+def cholesky_solve(S: Float[Array, "n n *L"], B: Float[Array, "n k *L"]) -> Float[Array, "n k *L"]:
+    """``S^-1 B`` for a small symmetric positive definite ``S``: its Cholesky factor and two
+    triangular solves, written out entry by entry (no LAPACK call, see the deadlock hazard).
+    Trailing lane axes ``L`` (the smoother's trials) are carried through every entry."""
+    n = S.shape[0]
+    zero_s = jnp.zeros_like(S[0, 0])
+    L = [[None] * n for _ in range(n)]
+    for j in range(n):
+        d = S[j, j] - sum((L[j][k] ** 2 for k in range(j)), zero_s)
+        L[j][j] = jnp.sqrt(jnp.maximum(d, jnp.finfo(S.dtype).tiny))
+        for i in range(j + 1, n):
+            L[i][j] = (S[i, j] - sum((L[i][k] * L[j][k] for k in range(j)), zero_s)) / L[j][j]
+    zero = jnp.zeros_like(B[0])
+    y = []
+    for i in range(n):  # L y = B
+        y.append((B[i] - sum((L[i][k] * y[k] for k in range(i)), zero)) / L[i][i])
+    x = [None] * n
+    for i in reversed(range(n)):  # L' x = y
+        x[i] = (y[i] - sum((L[k][i] * x[k] for k in range(i + 1, n)), zero)) / L[i][i]
+    return jnp.stack(x)

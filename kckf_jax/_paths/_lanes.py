@@ -95,12 +95,14 @@ class _Consts:
 
 
 def lane_step(st: Structure, consts: _Consts, z, P, rates, noise, hb, rb, vb, ts,
-              innovations: bool = False):
+              innovations: bool = False, moments: bool = False):
     """One block step on lanes: ``z`` (``Nz, Nb, B``), ``P`` (upper triangle, ``n_tri, Nb,
     B``), ``rates`` (``m1, Nb, B``), ``noise = (alpha, beta, gamma)`` (``m1, Nb, B`` each),
     ``hb, rb, vb`` (``m, Nb, B``), ``ts`` (``Nb, B``). Returns the new ``(z, P)`` (the
     kernel's ``block_update``); ``innovations``: also each joint's fused Hall innovation and
-    its variance, ``(nu, s)`` (``m, Nb, B`` each; the kernel's ``block_step``)."""
+    its variance, ``(nu, s)`` (``m, Nb, B`` each; the kernel's ``block_step``); ``moments``:
+    also the predicted moments of ``y = [z, e]`` before any update, ``(y, S)`` (``Ny, Nb, B``
+    and the upper triangle of ``S``: the smoother's terms), after the innovations if both."""
     c = consts
     nz, ny = st.n_z, st.n_z + st.n_e
     # Predicted mean and covariance (Eqs. 3, 9-13).
@@ -109,6 +111,7 @@ def lane_step(st: Structure, consts: _Consts, z, P, rates, noise, hb, rb, vb, ts
     S = (_apply(c.C[0], P) + ts * (_apply(c.C[1], P) + ts * _apply(c.C[2], P))
          + _apply(c.Q[0], alpha) + _apply(c.Q[1], beta) + _apply(c.Q[2], gamma))
     y, S = jax.lax.optimization_barrier((y, S))
+    predicted = (y, S)
     # The constraint e = 0 as a perfect measurement (KCKF), then one update per joint.
     for i in range(st.n_e):
         e = nz + i
@@ -119,9 +122,12 @@ def lane_step(st: Structure, consts: _Consts, z, P, rates, noise, hb, rb, vb, ts
         nus.append(hb[i] - z[i])
         ss.append(P[c.index[nz][i, i]] + rb[i])
         z, P = _update(c, nz, z, P, i, nus[-1], rb[i], vb[i])
+    out = (z, P)
     if innovations:
-        return z, P, (jnp.stack(nus), jnp.stack(ss))
-    return z, P
+        out += ((jnp.stack(nus), jnp.stack(ss)),)
+    if moments:
+        out += (predicted,)
+    return out
 
 
 def _update(c: _Consts, n: int, z, P, index: int, innovation, r, valid):
@@ -165,14 +171,16 @@ def lane_scan(params: Params, st: Structure, z0: Float[Array, "B Nb Nz"],
               P0: Float[Array, "B Nb Nz Nz"], hold0: Float[Array, "B G"],
               dt: Float[Array, "B T"], gyro: Float[Array, "B T G"],
               hall_v: Float[Array, "B T M"], remat_chunk: int | None = None,
-              innovations: bool = False):
+              innovations: bool = False, moments: bool = False):
     """The Kalman filter over ``T`` rows of ``B`` trials, trials as lanes.
 
     Returns ``(zT, PT, holdT, rows)``: the final states (``B`` first, as given) and per row
     ``(z, P upper triangle, skipped)`` with the rows first and trials last:
     ``(T, Nz, Nb, B)``, ``(T, n_tri, Nb, B)``, ``(T, B)``. ``innovations``: ``rows`` is
     ``(nu, s, valid)`` instead (``T, m, Nb, B`` each), every joint's fused Hall innovation,
-    its variance and whether it was used (the likelihood's terms; no estimates kept)."""
+    its variance and whether it was used (the likelihood's terms; no estimates kept).
+    ``moments``: ``rows`` is ``(z, P, skipped, y, S)``, with each row's predicted moments
+    (``T, Ny, Nb, B`` and ``T, n_tri(Ny), Nb, B``: ``lane_step``'s), for the smoother."""
     robot = params.robot
     dtype = z0.dtype
     nz = st.n_z
@@ -211,7 +219,7 @@ def lane_scan(params: Params, st: Structure, z0: Float[Array, "B Nb Nz"],
         ts, (alpha, beta, gamma), hb_r, rb_r, vb_r, g_r = row
         tsb = jnp.broadcast_to(ts, (nb,) + ts.shape)
         out = lane_step(st, consts, x[:nz], x[nz:], rates_of(hold), (alpha, beta, gamma),
-                        hb_r, rb_r, vb_r, tsb, innovations)
+                        hb_r, rb_r, vb_r, tsb, innovations, moments)
         x_new = jnp.concatenate(out[:2])
         fin = jnp.isfinite(x_new).all(axis=(0, 1))
         x_new = jnp.where(fin, x_new, x)
@@ -219,6 +227,8 @@ def lane_scan(params: Params, st: Structure, z0: Float[Array, "B Nb Nz"],
         if innovations:
             nu, s = out[2]
             return (x_new, hold), (nu, s, vb_r & fin)
+        if moments:
+            return (x_new, hold), (x_new, ~fin) + out[2]
         return (x_new, hold), (x_new, ~fin)
 
     x0 = jnp.stack([jnp.moveaxis(z0[:, :, i], 0, 1) for i in range(nz)]
@@ -234,8 +244,8 @@ def lane_scan(params: Params, st: Structure, z0: Float[Array, "B Nb Nz"],
         # body then runs as one piece (64 x 10,000 bench, float32: gradient 3.7 -> 3.0 s).
         final, out = jax.lax.scan(jax.checkpoint(body), (x0, hold), rows)
     if not innovations:
-        xs, skipped = out
-        out = (xs[:, :nz], xs[:, nz:], skipped)
+        xs, skipped = out[:2]
+        out = (xs[:, :nz], xs[:, nz:], skipped) + tuple(out[2:])
     xT, holdT = final
     zT, PT = list(xT[:nz]), list(xT[nz:])
     zT = jnp.moveaxis(jnp.stack(zT), (0, 1, 2), (2, 1, 0))  # (B, Nb, Nz)

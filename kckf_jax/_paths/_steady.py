@@ -167,8 +167,10 @@ class Steady(AbstractPath):
         return FilterState(z, jnp.broadcast_to(P_ss, state.P.shape), held), est
 
     def _mean(self, params: Params, st: Structure, series: SensorSeries,
-              z0: Float[Array, "B Nb Nz"], hold0: Float[Array, "B G"], maps, head_maps
-              ) -> tuple[Float[Array, "B T K"], Float[Array, "B T K"], Float[Array, "B Nb Nz"]]:
+              z0: Float[Array, "B Nb Nz"], hold0: Float[Array, "B G"], maps, head_maps,
+              states: bool = False
+              ) -> tuple[Float[Array, "B T ..."], Float[Array, "B T K"] | None,
+                         Float[Array, "B Nb Nz"]]:
         """The mean over a batch of trials: the head rows' own maps ``head_maps = (As, Grs,
         Ghs)`` (a leading row axis), then the converged map ``maps = (A, Gr, Gh)``.
 
@@ -177,7 +179,8 @@ class Steady(AbstractPath):
         innermost: chunk operators would need building per row, which costs more than these
         rows). The converged rows go as whole chunks (``chunk_rows``), then the last 1 to
         ``chunk_rows`` rows one by one, which gives the final state. Returns ``(angles,
-        biases, z_last)``."""
+        biases, z_last)``; ``states``: ``(z_rows, None, z_last)`` instead, every row's block
+        state (``B T Nb Nz``: the smoother's filtered means)."""
         dtype = z0.dtype
         robot = params.robot
         Jr, Jh = reading_maps(params, st, dtype)
@@ -185,10 +188,14 @@ class Steady(AbstractPath):
         n_trials, nb, nz = z0.shape
         q = nb * nz
         T = series.dt.shape[1]
-        K = len(st.block_of)
         L = self.chunk_rows
         Gu = len(used)
-        out_map = output_map(st)
+        if states:  # every block coordinate an output (two halves, padded to even)
+            K = -(-q // 2)
+            out_map = np.eye(2 * K, q).reshape(2 * K, nb, nz)
+        else:  # the angles, then the biases
+            out_map = output_map(st)
+            K = len(st.block_of)
         out_map_j = jnp.asarray(out_map, dtype)
         coeffs = params.hall_coeffs
 
@@ -237,6 +244,9 @@ class Steady(AbstractPath):
                 "Bm,mpa->Bpa", x[:, k, Gu:], Wh)
             zs.append(z)
         outs = write(outs, jnp.einsum("kBpa,opa->Bko", jnp.stack(zs), out_map_j), first)
+        if states:
+            zs = jnp.concatenate(outs, axis=-1)[..., :q]
+            return zs.reshape(n_trials, T, nb, nz), None, z
         return outs[0], outs[1], z
 
     def _block_rows(self, n_trials: int) -> int:
