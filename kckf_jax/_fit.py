@@ -173,6 +173,11 @@ class RmseLoss(AbstractLoss):
         return self
 
 
+#: ``rmse+nll``'s weight on the likelihood (nats per reading against deg of RMSE); measured in
+#: docs/fitting.md ("The weight of rmse+nll").
+NLL_WEIGHT = 0.1
+
+
 class NllLoss(AbstractLoss):
     """The negative log-likelihood of every Hall reading given the earlier ones (nats per
     reading; ``_likelihood.hall_nll``): needs no motion capture."""
@@ -186,16 +191,17 @@ class NllLoss(AbstractLoss):
 
 
 class RmseNllLoss(AbstractLoss):
-    """Both: the RMSE against motion capture in deg plus the likelihood in nats per reading
-    (``unit`` "deg+nats"), each on its own scale."""
+    """Both: the RMSE against motion capture in deg plus ``nll_weight`` times the likelihood in
+    nats per reading (``unit`` "deg+nats")."""
 
     rmse: RmseLoss
     nll: NllLoss
+    nll_weight: float = eqx.field(static=True, default=NLL_WEIGHT)
     unit: ClassVar[str] = "deg_plus_nats"
     scale: ClassVar[float] = 1.0
 
     def __call__(self, params, batch):
-        return self.rmse(params, batch) * RAD2DEG + self.nll(params, batch)
+        return self.rmse(params, batch) * RAD2DEG + self.nll_weight * self.nll(params, batch)
 
     def refresh(self, params) -> RmseNllLoss:
         new = self.rmse.refresh(params)
@@ -206,12 +212,12 @@ LOSSES = ("rmse", "nll", "rmse+nll")
 
 
 def make_loss(kind: str, params: Params, batch: Batch, method: str,
-              remat_chunk: int | None) -> AbstractLoss:
+              remat_chunk: int | None, nll_weight: float = NLL_WEIGHT) -> AbstractLoss:
     """The training loss ``kind`` (``LOSSES``) on ``batch``."""
     if kind == "nll":
         return NllLoss(method)
     rmse = rmse_loss(params, batch, method, remat_chunk)
-    return rmse if kind == "rmse" else RmseNllLoss(rmse, NllLoss(method))
+    return rmse if kind == "rmse" else RmseNllLoss(rmse, NllLoss(method), nll_weight)
 
 
 def rmse_loss(params: Params, batch: Batch, method: str, remat_chunk: int | None) -> RmseLoss:
@@ -297,6 +303,8 @@ class FitConfig:
         method: the filter to fit (``"kckf"`` or ``"kf"``).
         loss: ``"rmse"`` (the mean RMSE against motion capture), ``"nll"`` (the negative
             log-likelihood of the Hall readings: no motion capture needed) or ``"rmse+nll"``.
+        nll_weight: ``rmse+nll``'s weight on the likelihood, in deg of RMSE per nat per
+            reading (docs/fitting.md says how the default was chosen).
     """
 
     steps: int = 200
@@ -313,6 +321,7 @@ class FitConfig:
     seed: int = 0
     method: str = "kckf"
     loss: str = "rmse"
+    nll_weight: float = NLL_WEIGHT
 
     def __post_init__(self):
         unknown = sorted(set(self.freeze) - set(_LEAVES))
@@ -324,6 +333,9 @@ class FitConfig:
         if self.loss not in LOSSES:
             raise ValueError(f"FitConfig.loss: expected one of {', '.join(LOSSES)}, got "
                              f"{self.loss!r}")
+        if not (math.isfinite(self.nll_weight) and self.nll_weight > 0):
+            raise ValueError(f"FitConfig.nll_weight: expected a positive number, got "
+                             f"{self.nll_weight!r}")
         self.train_config()  # the loop's own checks
 
     def train_config(self) -> TrainConfig:
@@ -427,10 +439,10 @@ def fit(
     if params.robot != sessions[0].robot:
         raise ValueError(f"initial parameters are for joints {params.robot.spec!r}, the "
                          f"sessions have {sessions[0].robot.spec!r}")
-    loss = make_loss(config.loss, params, batch, config.method, chunk)
+    loss = make_loss(config.loss, params, batch, config.method, chunk, config.nll_weight)
     # The validation loss is not differentiated: no remat needed.
-    val_loss = (make_loss(config.loss, params, val, config.method, None) if val is not None
-                else None)
+    val_loss = (None if val is None else
+                make_loss(config.loss, params, val, config.method, None, config.nll_weight))
     # Parameters live replicated on every device (committed, so that the first and later
     # steps see identically placed inputs and compile once).
     replicated = jax.sharding.NamedSharding(trial_mesh(), jax.sharding.PartitionSpec())

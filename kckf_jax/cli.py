@@ -205,7 +205,8 @@ def cmd_fit(args) -> int:
     _warn(args, data_faults(sessions + val, None, _gaps(args))[1])
     config = FitConfig(steps=args.steps, learning_rate=args.lr, hall_noise=args.noise,
                        freeze=tuple(args.freeze or ()), burn_in_s=args.burn_in,
-                       batch_size=args.batch_size, seed=args.seed, loss=args.loss)
+                       batch_size=args.batch_size, seed=args.seed, loss=args.loss,
+                       **({} if args.nll_weight is None else {"nll_weight": args.nll_weight}))
     init = None
     if args.init:
         from ._params import load_params
@@ -495,6 +496,8 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--loss", choices=("rmse", "nll", "rmse+nll"), default="rmse",
                    help="rmse against motion capture (default), nll: the likelihood of the Hall "
                         "readings (needs no mocap.csv), or both")
+    t.add_argument("--nll-weight", type=float,
+                   help="rmse+nll: deg of RMSE per nat of likelihood (FitConfig.nll_weight)")
     t.add_argument("--batch-size", type=int, help="trials per step (default all)")
     t.add_argument("--init", help="start from this parameter file instead of the paper's")
     t.add_argument("--checkpoint", help="checkpoint file (default OUTPUT.ckpt)")

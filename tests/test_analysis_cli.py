@@ -11,7 +11,7 @@ import shutil
 import numpy as np
 import pytest
 
-from kckf_jax import FitConfig, filter_sessions, fit, load_params, read_session
+from kckf_jax import FitConfig, filter_sessions, fit, initial_params, load_params, read_session
 from kckf_jax.cli import main
 
 
@@ -92,6 +92,22 @@ def test_the_likelihood_losses_go_down(session, loss):
 def test_fit_config_names_the_losses():
     with pytest.raises(ValueError, match="rmse, nll, rmse\\+nll"):
         FitConfig(loss="likelihood")
+    with pytest.raises(ValueError, match="nll_weight: expected a positive number"):
+        FitConfig(loss="rmse+nll", nll_weight=0.0)
+
+
+def test_rmse_nll_is_the_rmse_plus_the_weighted_likelihood(session):
+    """``rmse+nll`` = RMSE (deg) + ``nll_weight`` x NLL (nats per reading), at any weight."""
+    from kckf_jax._fit import make_batch, make_loss
+
+    s = read_session(session)
+    params = initial_params([s], FitConfig())
+    batch = make_batch([s], params.log_q.dtype)
+    rmse = float(make_loss("rmse", params, batch, "kckf", None)(params, batch)) * 180 / np.pi
+    nll = float(make_loss("nll", params, batch, "kckf", None)(params, batch))
+    for w in (0.1, 2.0):
+        both = float(make_loss("rmse+nll", params, batch, "kckf", None, w)(params, batch))
+        assert both == pytest.approx(rmse + w * nll, rel=1e-9)
 
 
 def test_the_command_keeps_compiled_programs_between_runs(session, tmp_path):
