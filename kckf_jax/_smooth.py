@@ -38,6 +38,7 @@ from ._kernel import (
 )
 from ._model import FILTER_METHODS, structure
 from ._params import Params
+from ._paths._base import is_traced
 from ._paths._lanes import Lanes
 from ._paths._lanes_smooth import lane_smooth
 from ._paths._steady_smooth import SteadySmoother
@@ -118,8 +119,10 @@ def smooth_batch(params: Params, series: SensorSeries, method: str = "kckf",
     converge: the backward pass a constant map too, ``SteadySmoother``), ``"lanes"`` (the
     ``Lanes`` arithmetic with the trials as lanes, forward and backward), ``"sequential"``
     (``vmap`` of the one-recording smoother) or ``"auto"``: steady where it applies, else lanes
-    for a batch of at least ``Lanes.min_trials`` trials, else sequential. The same estimates
-    to rounding; ``Estimate.path`` is ``"smoothed"`` (sequential), ``"smoothed:lanes"`` or
+    for a batch of at least ``Lanes.min_trials`` trials, else sequential (inside ``jit`` or
+    ``grad`` the data cannot be checked: ``"auto"`` does not take the steady path there, an
+    explicit ``"steady"`` vouches for the data). The same estimates to rounding;
+    ``Estimate.path`` is ``"smoothed"`` (sequential), ``"smoothed:lanes"`` or
     ``"smoothed:steady"``."""
     _check(method)
     name = _smooth_path(params, series, method, path)
@@ -138,6 +141,8 @@ def _smooth_path(params: Params, series: SensorSeries, method: str, path: str) -
     if path not in SMOOTH_PATHS:
         raise ValueError(f"smooth: unknown path {path!r}; expected one of "
                          f"{', '.join(SMOOTH_PATHS)}")
+    if path == "steady" and is_traced(params, series):
+        return "steady"  # inside jit or grad: the caller vouches for the data, as for a filter
     if path in ("auto", "steady"):
         why = SteadySmoother().applies(params, series, method)
         if why is None:

@@ -88,6 +88,16 @@ def test_steady_smoother_equals_sequential(spec, rows):
     a = np.asarray(est.angles)  # the constraint holds for the smoothed estimates too
     np.testing.assert_allclose(a[:, robot.n_joint_axes:],
                                a[:, :robot.n_joint_axes] @ robot.torso_sum.T, atol=1e-12)
+    if spec == "x,y":  # differentiable: the steady path's gradient is the sequential one's
+        diff, static = eqx.partition(params, eqx.is_inexact_array)
+
+        def loss(d, path):
+            est = smooth(eqx.combine(d, static), one, path=path)
+            return jnp.mean(est.angles ** 2) + jnp.mean(est.angle_std)
+
+        g_seq, g_steady = (jax.grad(loss)(diff, p) for p in ("sequential", "steady"))
+        for a, b in zip(jax.tree_util.tree_leaves(g_seq), jax.tree_util.tree_leaves(g_steady)):
+            np.testing.assert_allclose(b, a, atol=1e-12, rtol=1e-8)
     if spec == "x,y,x,y":  # a batch of two regular trials; float32
         two = jax.tree_util.tree_map(lambda *x: jnp.stack(x), one, _regular(robot, 2, rows))
         batch = smooth_batch(params, two)
