@@ -157,6 +157,13 @@ def init_state(params: Params, method: str = "kckf") -> FilterState:
     return FilterState(z0, jnp.zeros((0, 0), dtype), hold)
 
 
+def init_states(params: Params, method: str, n: int) -> FilterState:
+    """``init_state`` for each of ``n`` trials: a leading axis of ``n`` on every leaf (the
+    batch of states the paths carry)."""
+    return jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (n,) + x.shape),
+                                  init_state(params, method))
+
+
 def hall_measurements(
     params: Params, hall_v: Float[Array, " M"]
 ) -> tuple[Float[Array, " M"], Float[Array, " M"], Bool[Array, " M"]]:

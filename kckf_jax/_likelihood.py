@@ -31,7 +31,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from ._hall import hall_slope
-from ._kernel import SensorSeries, hall_measurements, init_state, plausible
+from ._kernel import SensorSeries, hall_measurements, init_states, plausible
 from ._model import structure
 from ._params import Params
 from ._paths._lanes import Lanes, lane_scan
@@ -67,16 +67,11 @@ def lane_innovations(params: Params, batch: SensorSeries, method: str = "kckf",
     """Every fused Hall innovation of a batch (``B T``) from the lanes path's scan:
     ``(nu, s, valid)``, each ``T x m x Nb x B`` (``innovations``' terms, another layout)."""
     st = structure(params.robot, method)
-    state = init_state(params, method)
+    state = init_states(params, method, jnp.shape(batch.dt)[0])
     dtype = state.z.dtype
     series = plausible(params, jax.tree_util.tree_map(lambda x: jnp.asarray(x).astype(dtype),
                                                       batch))
-    B = series.dt.shape[0]
-
-    def each(x):
-        return jnp.broadcast_to(x, (B,) + x.shape)
-
-    *_, rows = lane_scan(params, st, each(state.z), each(state.P), each(state.gyro_hold),
+    *_, rows = lane_scan(params, st, state.z, state.P, state.gyro_hold,
                          series.dt, series.gyro, series.hall_v, remat_chunk, innovations=True)
     return rows
 

@@ -17,7 +17,15 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._gaps import GapPolicy
-from ._kernel import Estimate, FilterState, SensorSeries, check_method, init_state, pad_series
+from ._kernel import (
+    Estimate,
+    FilterState,
+    SensorSeries,
+    check_method,
+    init_state,
+    init_states,
+    pad_series,
+)
 from ._params import Params
 from ._paths import AbstractPath, Auto, PathChoice, as_path
 from ._session import Session, split_at_gaps
@@ -111,9 +119,7 @@ def filter_batch(params: Params, series: SensorSeries, method: str = "kckf",
 
 @eqx.filter_jit
 def _run_batch(path: AbstractPath, params, series, method):
-    n = jnp.shape(series.dt)[0]
-    state = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (n,) + x.shape),
-                                   init_state(params, method))
+    state = init_states(params, method, jnp.shape(series.dt)[0])
     return path.run(params, series, method, state)[1]
 
 

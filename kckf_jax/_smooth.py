@@ -34,6 +34,7 @@ from ._kernel import (
     block_estimate,
     check_method,
     init_state,
+    init_states,
     kalman_step_moments,
 )
 from ._model import FILTER_METHODS, structure
@@ -97,8 +98,9 @@ def smooth(params: Params, series: SensorSeries, method: str = "kckf",
     _check(method)
     if state is None and path != "sequential":
         batch = jax.tree_util.tree_map(lambda x: jnp.asarray(x)[None], series)
-        if _smooth_path(params, batch, method, path) != "sequential":
-            est = smooth_batch(params, batch, method, path)
+        name = _smooth_path(params, batch, method, path)
+        if name != "sequential":
+            est = _smooth_on(name, params, batch, method)
             return dataclasses.replace(est, angles=est.angles[0], angle_std=est.angle_std[0],
                                        bias=est.bias[0], skipped=est.skipped[0])
     elif state is not None and path not in ("auto", "sequential"):
@@ -125,7 +127,11 @@ def smooth_batch(params: Params, series: SensorSeries, method: str = "kckf",
     ``Estimate.path`` is ``"smoothed"`` (sequential), ``"smoothed:lanes"`` or
     ``"smoothed:steady"``."""
     _check(method)
-    name = _smooth_path(params, series, method, path)
+    return _smooth_on(_smooth_path(params, series, method, path), params, series, method)
+
+
+def _smooth_on(name: str, params: Params, series: SensorSeries, method: str) -> Estimate:
+    """The batch smoothed on the path ``name`` (``_smooth_path``'s choice), labelled."""
     if name == "steady":
         est = _smooth_steady(SteadySmoother(), params, series, method)
     elif name == "lanes":
@@ -175,9 +181,7 @@ def _smooth_many(params, series, method):
 
 @eqx.filter_jit
 def _smooth_lanes(params, series, method):
-    n = jnp.shape(series.dt)[0]
-    state = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (n,) + x.shape),
-                                   init_state(params, method))
+    state = init_states(params, method, jnp.shape(series.dt)[0])
     angles, std, bias, skipped = lane_smooth(params, structure(params.robot, method), series,
                                              state)
     return Estimate(angles, std, bias, skipped)
@@ -185,7 +189,5 @@ def _smooth_lanes(params, series, method):
 
 @eqx.filter_jit
 def _smooth_steady(smoother, params, series, method):
-    n = jnp.shape(series.dt)[0]
-    state = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (n,) + x.shape),
-                                   init_state(params, method))
+    state = init_states(params, method, jnp.shape(series.dt)[0])
     return Estimate(*smoother.run(params, series, method, state))

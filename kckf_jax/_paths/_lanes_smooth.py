@@ -1,8 +1,8 @@
 """The RTS smoother on lanes: the forward pass of ``lane_scan`` with its predicted moments, then
-the backward pass (``_smooth.py``'s ``_rts_block``) written out entry by entry with the trial
-axis last, as ``_lanes.py`` writes the filter step.
+the backward pass (``_rts.rts_block``) written out entry by entry with the trial axis last,
+as ``_lanes.py`` writes the filter step.
 
-The arithmetic is ``_rts_block``'s, in the same order: the rows of the next row's ``y = [z, e]``
+The arithmetic is ``rts_block``'s, in the same order: the rows of the next row's ``y = [z, e]``
 the update conditioned on (every z coordinate with variance, the constraint where there was a
 time step), ``G = P F' S^-1`` through the same written-out Cholesky, the smoothed mean and the
 covariance ``P + G (P^y_s - S) G'`` stored as its upper triangle, a skipped next row passing

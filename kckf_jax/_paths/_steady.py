@@ -96,8 +96,9 @@ class Steady(AbstractPath):
 
     def model_reason(self, params: Params, method: str) -> str | None:
         """Why the filter itself (whatever the data) never becomes a constant map, or None."""
-        if kalman_only(method):
-            return kalman_only(method)
+        why = kalman_only(method)
+        if why is not None:
+            return why
         if method == "kf":
             return ("the standard KF's torso angle and bias are unobservable (Eq. 21): its "
                     "covariance never converges")
@@ -145,13 +146,8 @@ class Steady(AbstractPath):
         series = plausible(params, jax.tree_util.tree_map(
             lambda x: jnp.asarray(x).astype(dtype), series))
         T = series.dt.shape[1]
-        # Trial 0's time steps, masks and noise stand for every trial's (a regular batch).
-        trial0 = jax.tree_util.tree_map(lambda x: x[0, : n_head + 1], series)
-        rows, _ = series_inputs(params, st, trial0, state.gyro_hold[0])
-        head = jax.tree_util.tree_map(lambda x: x[:n_head], rows)
-        P_head, (Ps, As, Grs, Ghs, ok) = covariance_phase(params, st, state.P[0], head)
-        last = jax.tree_util.tree_map(lambda x: x[n_head], rows)
-        P_ss, A, Gr, Gh = step_maps(params, st, P_head, last)
+        (Ps, As, Grs, Ghs, ok), (P_ss, A, Gr, Gh), _ = self.head_and_map(params, st, series,
+                                                                         state)
         zeros = jnp.zeros(P_ss.shape[:2], dtype)
         std_head = jax.vmap(lambda Pk: block_estimate(st, zeros, Pk).angle_std)(Ps)
         std_tail = block_estimate(st, zeros, P_ss).angle_std
@@ -165,6 +161,20 @@ class Steady(AbstractPath):
         est = Estimate(angles, jnp.broadcast_to(std, angles.shape), bias, skipped)
         held = jax.vmap(last_finite)(series.gyro, state.gyro_hold)
         return FilterState(z, jnp.broadcast_to(P_ss, state.P.shape), held), est
+
+    def head_and_map(self, params: Params, st: Structure, series: SensorSeries,
+                     state: FilterState):
+        """The covariance phase over the head rows and the converged map after them, from
+        trial 0's rows (a regular batch: its time steps, masks and noise stand for every
+        trial's). Returns ``(Ps, As, Grs, Ghs, ok)`` per head row, ``(P_ss, A, Gr, Gh)`` and
+        the first converged row's block inputs (``block_inputs``)."""
+        n_head = self.head_rows(state.z.dtype)
+        trial0 = jax.tree_util.tree_map(lambda x: x[0, : n_head + 1], series)
+        rows, _ = series_inputs(params, st, trial0, state.gyro_hold[0])
+        head = jax.tree_util.tree_map(lambda x: x[:n_head], rows)
+        P_head, head_rows = covariance_phase(params, st, state.P[0], head)
+        last = jax.tree_util.tree_map(lambda x: x[n_head], rows)
+        return head_rows, step_maps(params, st, P_head, last), last
 
     def _mean(self, params: Params, st: Structure, series: SensorSeries,
               z0: Float[Array, "B Nb Nz"], hold0: Float[Array, "B G"], maps, head_maps,

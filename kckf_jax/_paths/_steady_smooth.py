@@ -29,7 +29,7 @@ from .._kernel import FilterState, SensorSeries, block_estimate, init_state, pla
 from .._model import predicted_moments, structure
 from .._params import Params
 from .._rts import rts_covariance, rts_gain, rts_rows
-from ._affine import covariance_phase, output_map, reading_maps, series_inputs, step_maps
+from ._affine import output_map, reading_maps, series_inputs, step_maps
 from ._base import is_traced, regular_step, relative_change
 from ._steady import Steady, _head_covariance
 
@@ -120,12 +120,8 @@ class SteadySmoother(eqx.Module):
         n_trials, T = series.dt.shape
         nz = st.n_z
         # The forward pass: Steady.run's covariances and maps, every row's block state.
-        trial0 = jax.tree_util.tree_map(lambda x: x[0, : n_head + 1], series)
-        rows, _ = series_inputs(params, st, trial0, state.gyro_hold[0])
-        head = jax.tree_util.tree_map(lambda x: x[:n_head], rows)
-        P_head, (Ps, As, Grs, Ghs, ok) = covariance_phase(params, st, state.P[0], head)
-        last = jax.tree_util.tree_map(lambda x: x[n_head], rows)
-        P_ss, A, Gr, Gh = step_maps(params, st, P_head, last)
+        (Ps, As, Grs, Ghs, ok), (P_ss, A, Gr, Gh), last = steady.head_and_map(
+            params, st, series, state)
         Z, _, _ = steady._mean(params, st, series, state.z, state.gyro_hold, (A, Gr, Gh),
                                (As, Grs, Ghs), states=True)  # (B, T, Nb, Nz)
         ts, noise = last[0], last[2]  # every row after the first: the same step and noise
@@ -139,28 +135,17 @@ class SteadySmoother(eqx.Module):
         y_next = (jnp.einsum("ya,Btpa->Btpy", F, Z[:, :-1])
                   + ts * jnp.einsum("yi,Btpi->Btpy", G1, rates))  # (B, T-1, Nb, Ny)
 
-        def predicted_cov(P):  # S of the next row from this row's covariance (per block)
-            zero = jnp.zeros(st.m + 1, dtype)
-            return jax.vmap(lambda Pb, a, b, c: predicted_moments(
-                st, jnp.zeros(nz, dtype), Pb, zero, (a, b, c), ts)[1])(P, *noise)
-
-        gain = jax.vmap(lambda P, S: rts_gain(st, P, S, ts))
-        S_ss = predicted_cov(P_ss)
-        G_ss, use_ss, Sm_ss = gain(P_ss, S_ss)
+        gain = _converged_gain(st, P_ss, noise, ts)
+        G_ss = gain[0]
         # The converged rows k = n_head .. T-2, backward from the last row's filtered state.
         w = Z[:, n_head:-1] - jnp.einsum("pay,Btpy->Btpa", G_ss, y_next[:, n_head:])
         Zs_mid = reverse_affine(G_ss[:, :, :nz], w, Z[:, -1])
         # Their covariance: the recursion over the last rows, then its fixed point.
         n_mid = T - 1 - n_head
         n_tail = min(self.tail_rows(dtype), n_mid)
-
-        def cov_row(P_s, _):
-            P = jax.vmap(lambda *a: rts_covariance(st, *a))(P_ss, G_ss, use_ss, Sm_ss, P_s)
-            return P, P
-
-        P_inf, P_tail = jax.lax.scan(cov_row, P_ss, None, length=n_tail)  # last row first
+        P_inf, P_tail = _covariance_tail(st, P_ss, gain, n_tail)  # last row first
         # The head rows: their own gains, entered from the first converged row's smoothing.
-        S_head = jax.vmap(predicted_cov)(Ps)
+        S_head = jax.vmap(lambda P: _predicted_cov(st, P, noise, ts))(Ps)
         # (The carry P_inf is the first converged row's: the fixed point, or the tail's last.)
         z_first = Zs_mid[:, 0] if n_mid else Z[:, -1]
         skip_next = jnp.concatenate([~ok[1:], jnp.zeros(1, bool)])
@@ -189,6 +174,34 @@ class SteadySmoother(eqx.Module):
         return y[..., :K], std, y[..., K:], skipped
 
 
+def _predicted_cov(st, P: Float[Array, "Nb Nz Nz"], noise, ts) -> Float[Array, "Nb Ny Ny"]:
+    """Each block's predicted covariance of the next row's ``y`` from this row's ``P``, with
+    that row's process noise ``(alpha, beta, gamma)`` and time step ``ts``."""
+    dtype = P.dtype
+    zero = jnp.zeros(st.m + 1, dtype)
+    return jax.vmap(lambda Pb, a, b, c: predicted_moments(
+        st, jnp.zeros(st.n_z, dtype), Pb, zero, (a, b, c), ts)[1])(P, *noise)
+
+
+def _converged_gain(st, P_ss: Float[Array, "Nb Nz Nz"], noise, ts):
+    """The constant smoother gain of the converged rows (``_rts.rts_gain`` per block): ``(G,
+    use, S)``, from the converged covariance ``P_ss`` and the rows' noise and time step."""
+    S_ss = _predicted_cov(st, P_ss, noise, ts)
+    return jax.vmap(lambda P, S: rts_gain(st, P, S, ts))(P_ss, S_ss)
+
+
+def _covariance_tail(st, P_ss: Float[Array, "Nb Nz Nz"], gain, n: int):
+    """The smoothed covariance backward from the last row (``P_ss``) over ``n`` converged rows
+    with the constant ``gain``: ``(the last one reached, every one, last row first)``."""
+    G, use, Sm = gain
+
+    def cov_row(P_s, _):
+        P = jax.vmap(lambda *a: rts_covariance(st, *a))(P_ss, G, use, Sm, P_s)
+        return P, P
+
+    return jax.lax.scan(cov_row, P_ss, None, length=n)
+
+
 @eqx.filter_jit
 def _tail_change(params: Params, method: str, P0: Float[Array, "Nb Nz Nz"],
                  step_s: Float[Array, ""], n_head: int, n: int) -> Float[Array, ""]:
@@ -203,13 +216,6 @@ def _tail_change(params: Params, method: str, P0: Float[Array, "Nb Nz Nz"],
     rows, _ = series_inputs(params, st, series, jnp.zeros(3 * params.robot.n_links, dtype))
     last = jax.tree_util.tree_map(lambda x: x[1], rows)
     P_ss = step_maps(params, st, P_head, last)[0]
-    zero = jnp.zeros(st.m + 1, dtype)
-    S_ss = jax.vmap(lambda Pb, a, b, c: predicted_moments(
-        st, jnp.zeros(st.n_z, dtype), Pb, zero, (a, b, c), step_s)[1])(P_ss, *last[2])
-    G, use, Sm = jax.vmap(lambda P, S: rts_gain(st, P, S, step_s))(P_ss, S_ss)
-
-    def cov_row(P_s, _):
-        return jax.vmap(lambda *a: rts_covariance(st, *a))(P_ss, G, use, Sm, P_s), None
-
-    P_n, _ = jax.lax.scan(cov_row, P_ss, None, length=n)
-    return relative_change(P_n, cov_row(P_n, None)[0])
+    gain = _converged_gain(st, P_ss, last[2], step_s)
+    _, P_rows = _covariance_tail(st, P_ss, gain, n + 1)
+    return relative_change(P_rows[n - 1], P_rows[n])
