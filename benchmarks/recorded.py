@@ -18,7 +18,8 @@ How the peers are given what they cannot express:
   rows that are present (exact masking), in a Python loop (timed on the first 5,000 rows).
 
 Cases: 64 trials x 10,000 rows; trial counts 1 to 1,024 at 5,000 rows (kckf-jax); one
-recorded-like hour (360,000 rows); one fitting step on 64 x 10,000 rows through ``fit`` with
+recorded-like hour (360,000 rows: the segments path, against the sequential one and the lanes
+layout with one lane); one fitting step on 64 x 10,000 rows through ``fit`` with
 the default ``FitConfig``, its compile and the peak memory, and the fitting step on regular
 data (the steady path's gradient compile). Accuracy: the largest angle difference from
 kckf-jax's float64 sequential filter on the same rows.
@@ -103,6 +104,41 @@ def reference(spec, B, T):
                     spec, str(B), str(T), out], check=True)
     d = np.load(out)
     return d["ref"], d["lanes"]
+
+
+HOUR_REFERENCE = """
+import sys, numpy as np, jax
+jax.config.update("jax_enable_x64", True)
+import jax.numpy as jnp
+import kckf_jax as kk
+robot = kk.Robot.from_spec(sys.argv[1])
+L = int(sys.argv[2])
+hour = kk.simulate(robot, "static", seed=3, duration_s=L / 100.0, drop_prob=0.01)
+p = kk.initial_params([hour], kk.FitConfig(), jnp.float64)
+ser = kk.session_series(hour, jnp.float64)
+seg = kk.run_filter(p, ser, "kckf", path="segments")[1]
+ref = kk.run_filter(p, ser, "kckf", path="sequential")[1]
+np.savez(sys.argv[3], ref=np.asarray(ref.angles), seg=np.asarray(seg.angles),
+         seg_path=seg.path)
+"""
+
+
+def hour_reference(spec, L):
+    """The float64 sequential filter's angles on the recorded-like hour (and how far the
+    float64 segments path is from them, printed), in a process of its own."""
+    import tempfile
+
+    out = os.path.join(tempfile.mkdtemp(), "hour.npz")
+    subprocess.run([sys.executable, "-c", HOUR_REFERENCE, spec, str(L), out], check=True)
+    d = np.load(out)
+    log(f"float64 hour: {d['seg_path']} path, max |segments - sequential| = "
+        f"{np.nanmax(np.abs(d['seg'] - d['ref'])):.2e} rad")
+    HOUR_FLOAT64[spec] = {"path_that_ran": str(d["seg_path"]),
+                          "max_err_rad": float(np.nanmax(np.abs(d["seg"] - d["ref"])))}
+    return d["ref"]
+
+
+HOUR_FLOAT64: dict = {}
 
 
 def batch_of(sessions, dtype):
@@ -274,13 +310,19 @@ def run_robot(name, spec, args):
     log(f"{name}: one hour")
     hour = kk.simulate(robot, "static", seed=3, duration_s=L / 100.0, drop_prob=0.01)
     ser = kk.session_series(hour, jnp.float32)
+    ref_hour = hour_reference(spec, L)
     long = {}
-    for label, path in (("kckf-jax auto", "auto"), ("kckf-jax sequential", "sequential"),
+    for label, path in (("kckf-jax auto", "auto"), ("kckf-jax segments", "segments"),
+                        ("kckf-jax sequential", "sequential"),
                         ("kckf-jax lanes (1 lane)", "lanes")):
-        _, t, first = timed(lambda path=path: kk.run_filter(p32, ser, "kckf", path=path)[1].angles,
-                            repeats=2)
-        long[label] = {"steps_per_s": L / t, "seconds": t, "compile_s": first - t}
+        est, t, first = timed(lambda path=path: kk.run_filter(p32, ser, "kckf", path=path)[1],
+                              repeats=3)
+        long[label] = {"steps_per_s": L / t, "seconds": t, "compile_s": first - t,
+                       "path_that_ran": est.path,
+                       "max_err_rad": float(np.nanmax(np.abs(np.asarray(est.angles, np.float64)
+                                                             - ref_hour)))}
     long["kckf-jax auto"]["path"] = kk.choose_path(p32, ser, "kckf").path.name
+    long["kckf-jax segments, float64"] = HOUR_FLOAT64[spec]
     res["hour"] = long
     if name == "bench":
         res["fit"] = fit_steps(robot, args)

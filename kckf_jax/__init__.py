@@ -13,7 +13,7 @@ The public API (everything else lives in private modules; docs/architecture.md m
 * offline analysis: ``smooth``, ``smooth_batch`` (the fixed-interval RTS smoother),
   ``consistency_figures`` (NIS and NEES against a consistent filter's interval);
 * the paths (how the same estimates are computed): ``AbstractPath``, ``Sequential``,
-  ``Steady``, ``Lanes``, ``Parallel``, ``Auto``;
+  ``Steady``, ``Lanes``, ``Segments``, ``Parallel``, ``Auto``;
 * the Hall model (Eq. 1; coefficients in rad): ``hall_angle``, ``hall_slope``,
   ``hall_voltage``;
 * sessions: ``Session``, ``SessionError``, ``read_session``, ``write_session``,
@@ -64,6 +64,7 @@ from ._paths import Auto as Auto
 from ._paths import Lanes as Lanes
 from ._paths import Parallel as Parallel
 from ._paths import PathChoice as PathChoice
+from ._paths import Segments as Segments
 from ._paths import Sequential as Sequential
 from ._paths import Steady as Steady
 from ._report import consistency_figures as consistency_figures

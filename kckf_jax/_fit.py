@@ -131,7 +131,8 @@ def per_angle_rmse(params: Params, batch: Batch, method: str = "kckf",
     NaN-free by construction: missing truth is masked before it is subtracted, and the square
     root is guarded, so neither the loss nor its gradient is NaN when truth is missing.
     """
-    path = Auto(sequential=Sequential(remat_chunk)) if path is None else as_path(path)
+    path = (Auto(segments=None, sequential=Sequential(remat_chunk)) if path is None
+            else as_path(path))
     n_trials = batch.truth.shape[0]
     state = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (n_trials,) + x.shape),
                                    init_state(params, method))
@@ -223,7 +224,10 @@ def make_loss(kind: str, params: Params, batch: Batch, method: str,
 def rmse_loss(params: Params, batch: Batch, method: str, remat_chunk: int | None) -> RmseLoss:
     """The training loss on ``batch``, its path chosen on the concrete data and ``params``."""
     fallback = Sequential(remat_chunk)
-    path = choose_path(params, batch.series, method, Auto(sequential=fallback)).path
+    # Not the segments path: its warm-ups cut each segment's dependence on the rows before
+    # them, which the values' check vouches for but a gradient would not see.
+    path = choose_path(params, batch.series, method,
+                       Auto(segments=None, sequential=fallback)).path
     step_s = float(np.asarray(batch.series.dt)[0, 1]) if isinstance(path, Steady) else None
     return RmseLoss(method, path, step_s, fallback)
 

@@ -27,7 +27,7 @@ from ._kernel import (
     pad_series,
 )
 from ._params import Params
-from ._paths import AbstractPath, Auto, PathChoice, as_path
+from ._paths import AbstractPath, Auto, PathChoice, Segments, Sequential, as_path, is_traced
 from ._session import Session, split_at_gaps
 from ._smooth import smooth_batch
 
@@ -88,15 +88,33 @@ def run_filter(
     chosen = choose_path(params, series, method, path, state).path
     if state is None:
         state = init_state(params, method)
+    if isinstance(chosen, Segments) and not is_traced(params, series, state):
+        final, est, ok = _run_one_checked(chosen, params, series, method, state)
+        if bool(ok):
+            return final, dataclasses.replace(est, path=chosen.name,
+                                              names=params.robot.angle_names)
+        chosen = Sequential()  # a warm-up did not converge: the segments' check failed
     final, est = _run_one(chosen, params, series, method, state)
     return final, dataclasses.replace(est, path=chosen.name, names=params.robot.angle_names)
 
 
+def _one(x):
+    return jax.tree_util.tree_map(lambda a: jnp.asarray(a)[None], x)
+
+
+def _first(x):
+    return jax.tree_util.tree_map(lambda a: a[0], x)
+
+
 @eqx.filter_jit
 def _run_one(path: AbstractPath, params, series, method, state):
-    series1, state1 = jax.tree_util.tree_map(lambda x: jnp.asarray(x)[None], (series, state))
-    final, est = path.run(params, series1, method, state1)
-    return jax.tree_util.tree_map(lambda x: x[0], (final, est))
+    return _first(path.run(params, _one(series), method, _one(state)))
+
+
+@eqx.filter_jit
+def _run_one_checked(path: Segments, params, series, method, state):
+    final, est, ok = path.run_checked(params, _one(series), method, _one(state))
+    return _first((final, est)) + (ok,)
 
 
 def filter_batch(params: Params, series: SensorSeries, method: str = "kckf",
@@ -113,6 +131,11 @@ def filter_batch(params: Params, series: SensorSeries, method: str = "kckf",
     """
     check_method(method)
     chosen = choose_path(params, series, method, path).path
+    if isinstance(chosen, Segments) and not is_traced(params, series):
+        est, ok = _run_batch_checked(chosen, params, series, method)
+        if bool(ok):
+            return dataclasses.replace(est, path=chosen.name, names=params.robot.angle_names)
+        chosen = Sequential()  # a warm-up did not converge: the segments' check failed
     est = _run_batch(chosen, params, series, method)
     return dataclasses.replace(est, path=chosen.name, names=params.robot.angle_names)
 
@@ -121,6 +144,13 @@ def filter_batch(params: Params, series: SensorSeries, method: str = "kckf",
 def _run_batch(path: AbstractPath, params, series, method):
     state = init_states(params, method, jnp.shape(series.dt)[0])
     return path.run(params, series, method, state)[1]
+
+
+@eqx.filter_jit
+def _run_batch_checked(path: Segments, params, series, method):
+    state = init_states(params, method, jnp.shape(series.dt)[0])
+    _, est, ok = path.run_checked(params, series, method, state)
+    return est, ok
 
 
 # ---------------------------------------------------------------------------- sessions

@@ -8,6 +8,8 @@
   matrix products (``_chunks.py``), each reverse mode beside its forward;
 * ``Lanes``: the kernel's arithmetic with the trials as lanes (batches of recorded data:
   irregular time steps, missing readings, the voltage noise model);
+* ``Segments``: one long recording cut into warmed-up, checked segments run as lanes (recorded
+  data, one recording or a few);
 * ``Parallel``: covariance phase, then the mean by associative scan (accelerators);
 * ``Auto``: the policy.
 
@@ -26,16 +28,17 @@ from ._base import regular_step as regular_step
 from ._base import relative_change as relative_change
 from ._lanes import Lanes as Lanes
 from ._parallel import Parallel as Parallel
+from ._segments import Segments as Segments
 from ._sequential import Sequential as Sequential
 from ._steady import Steady as Steady
 
 PATHS = {"auto": Auto, "sequential": Sequential, "steady": Steady, "lanes": Lanes,
-         "parallel": Parallel}
+         "segments": Segments, "parallel": Parallel}
 
 
 def as_path(path: str | AbstractPath) -> AbstractPath:
     """A path object from a name (``"auto"``, ``"sequential"``, ``"steady"``, ``"lanes"``,
-    ``"parallel"``) or a path object itself."""
+    ``"segments"``, ``"parallel"``) or a path object itself."""
     if isinstance(path, AbstractPath):
         return path
     if path not in PATHS:

@@ -13,6 +13,7 @@ from .._params import Params
 from ._base import AbstractPath, is_traced
 from ._lanes import Lanes
 from ._parallel import Parallel
+from ._segments import Segments
 from ._sequential import Sequential
 from ._steady import Steady
 
@@ -27,8 +28,9 @@ class PathChoice(NamedTuple):
 class Auto(AbstractPath):
     """The fastest path that applies: ``Steady`` on a regular recording whose covariance
     converges; else, for a Kalman filter, ``Lanes`` for a batch of at least
-    ``lanes.min_trials`` trials; else ``Parallel`` on an accelerator and ``Sequential`` on a
-    CPU.
+    ``lanes.min_trials`` trials; else ``Segments`` for recordings long enough to cut into
+    ``segments.min_segments`` segments (``segments=None``: never); else ``Parallel`` on an
+    accelerator and ``Sequential`` on a CPU.
 
     The choice is made on concrete inputs before anything is traced (``run_filter``,
     ``filter_batch``, ``filter_sessions`` and the fitting loss all resolve ``Auto`` first).
@@ -39,12 +41,14 @@ class Auto(AbstractPath):
     Attributes:
         steady: the ``Steady`` path to try (its constants).
         lanes: the ``Lanes`` path to try (its constants).
+        segments: the ``Segments`` path to try (its constants), or ``None``.
         sequential: the ``Sequential`` path to fall back on (its remat chunk).
     """
 
     name: ClassVar[str] = "auto"
     steady: Steady = Steady()
     lanes: Lanes = Lanes()
+    segments: Segments | None = Segments()
     sequential: Sequential = Sequential()
 
     def select(self, params: Params, series: SensorSeries, method: str,
@@ -64,6 +68,14 @@ class Auto(AbstractPath):
             return PathChoice(self.lanes, passed)
         passed["lanes"] = why or (f"{n_trials} trial(s), fewer than {self.lanes.min_trials}: "
                                   "lanes pay for batches")
+        if self.segments is None:
+            passed["segments"] = "not offered here"
+        else:
+            why = self.segments.applies(params, series, method, state) or self.segments.pays(
+                series, _dtype(params, state))
+            if why is None:
+                return PathChoice(self.segments, passed)
+            passed["segments"] = why
         if jax.default_backend() != "cpu" and Parallel().applies(params, series, method) is None:
             return PathChoice(Parallel(), passed)
         passed["parallel"] = "slower than the sequential path on a CPU"
@@ -77,3 +89,8 @@ class Auto(AbstractPath):
             ) -> tuple[FilterState, Estimate]:
         return self.select(params, series, method, state).path.run(params, series, method,
                                                                    state)
+
+
+def _dtype(params: Params, state: FilterState | None):
+    """The computation's precision: the entering state's, else the parameters'."""
+    return state.z.dtype if state is not None else params.log_q.dtype

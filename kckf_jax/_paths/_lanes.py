@@ -167,11 +167,28 @@ def row_inputs(params: Params, st: Structure, dt: Float[Array, "T B"],
     return tuple(swap(n) for n in noise), swap(hb), swap(rb), swap(vb)
 
 
+#: The inputs of a no-op row (no time step, every reading missing), per ``lane_inputs`` leaf in
+#: ``tree_leaves`` order: ``ts``, the three noise terms, ``hb``, ``rb``, ``vb``, the gyro.
+NO_OP_INPUTS = (0.0, 0.0, 0.0, 0.0, 0.0, 1.0, False, jnp.nan)
+
+
+def lane_inputs(params: Params, st: Structure, dt: Float[Array, "B T"],
+                gyro: Float[Array, "B T G"], hall_v: Float[Array, "B T M"]):
+    """Every row's inputs to ``lane_scan``, rows first and trials last: ``(ts (T, B), (alpha,
+    beta, gamma), hb, rb, vb, gyro (T, G, B))`` (``row_inputs``' terms)."""
+    noise, hb, rb, vb = row_inputs(params, st, jnp.moveaxis(dt, 0, 1),
+                                   jnp.moveaxis(hall_v, 0, 1))
+    return (jnp.moveaxis(dt, 0, 1), noise, hb, rb, vb,
+            jnp.moveaxis(gyro, (0, 1, 2), (2, 0, 1)))
+
+
 def lane_scan(params: Params, st: Structure, z0: Float[Array, "B Nb Nz"],
               P0: Float[Array, "B Nb Nz Nz"], hold0: Float[Array, "B G"],
-              dt: Float[Array, "B T"], gyro: Float[Array, "B T G"],
-              hall_v: Float[Array, "B T M"], remat_chunk: int | None = None,
-              innovations: bool = False, moments: bool = False):
+              dt: Float[Array, "B T"] | None,
+              gyro: Float[Array, "B T G"] | None, hall_v: Float[Array, "B T M"] | None,
+              remat_chunk: int | None = None,
+              innovations: bool = False, moments: bool = False, rows_out: bool = True,
+              inputs: tuple | None = None):
     """The Kalman filter over ``T`` rows of ``B`` trials, trials as lanes.
 
     Returns ``(zT, PT, holdT, rows)``: the final states (``B`` first, as given) and per row
@@ -180,7 +197,10 @@ def lane_scan(params: Params, st: Structure, z0: Float[Array, "B Nb Nz"],
     ``(nu, s, valid)`` instead (``T, m, Nb, B`` each), every joint's fused Hall innovation,
     its variance and whether it was used (the likelihood's terms; no estimates kept).
     ``moments``: ``rows`` is ``(z, P, skipped, y, S)``, with each row's predicted moments
-    (``T, Ny, Nb, B`` and ``T, n_tri(Ny), Nb, B``: ``lane_step``'s), for the smoother."""
+    (``T, Ny, Nb, B`` and ``T, n_tri(Ny), Nb, B``: ``lane_step``'s), for the smoother.
+    ``rows_out=False``: no rows kept (``rows`` is ``None``; the final states only).
+    ``inputs``: ``lane_inputs(params, st, dt, gyro, hall_v)``, computed beforehand (then
+    ``dt``, ``gyro`` and ``hall_v`` are not read)."""
     robot = params.robot
     dtype = z0.dtype
     nz = st.n_z
@@ -192,10 +212,7 @@ def lane_scan(params: Params, st: Structure, z0: Float[Array, "B Nb Nz"],
     # Per block coordinate: which gyro columns make its rate (``rate_map``'s +1 and -1).
     rate_cols = [[(col[int(plus[k])], col[int(minus[k])]) if k >= 0 else None
                   for k in st.angle_index[:, i]] for i in range(st.m + 1)]
-    noise, hb, rb, vb = row_inputs(params, st, jnp.moveaxis(dt, 0, 1),
-                                   jnp.moveaxis(hall_v, 0, 1))
-    g = jnp.moveaxis(gyro, (0, 1, 2), (2, 0, 1))  # (T, G, B)
-    ts_rows = jnp.moveaxis(dt, 0, 1)  # (T, B)
+    rows = lane_inputs(params, st, dt, gyro, hall_v) if inputs is None else inputs
     nb = st.angle_index.shape[0]
 
     # The block rates (Eqs. 2, 9, 10) as one constant map of the held gyro columns.
@@ -229,21 +246,23 @@ def lane_scan(params: Params, st: Structure, z0: Float[Array, "B Nb Nz"],
             return (x_new, hold), (nu, s, vb_r & fin)
         if moments:
             return (x_new, hold), (x_new, ~fin) + out[2]
+        if not rows_out:
+            return (x_new, hold), None
         return (x_new, hold), (x_new, ~fin)
 
     x0 = jnp.stack([jnp.moveaxis(z0[:, :, i], 0, 1) for i in range(nz)]
                    + [jnp.moveaxis(P0[:, :, i, j], 0, 1) for i, j in tri])
     hold = jnp.moveaxis(hold0[:, used], 0, 1)
-    rows = (ts_rows, noise, hb, rb, vb, g)
     if remat_chunk:
         # No-op rows pad the last chunk: no time step, every reading missing.
-        fill = (0.0,) + (0.0,) * len(noise) + (0.0, 1.0, False, jnp.nan)  # tree_leaves order
-        final, out = chunked_scan(body, (x0, hold), rows, remat_chunk, fill)
+        final, out = chunked_scan(body, (x0, hold), rows, remat_chunk, NO_OP_INPUTS)
     else:
         # Each row recomputed under reverse mode (only the carries saved): the transposed
         # body then runs as one piece (64 x 10,000 bench, float32: gradient 3.7 -> 3.0 s).
         final, out = jax.lax.scan(jax.checkpoint(body), (x0, hold), rows)
-    if not innovations:
+    if not rows_out:
+        out = None
+    elif not innovations:
         xs, skipped = out[:2]
         out = (xs[:, :nz], xs[:, nz:], skipped) + tuple(out[2:])
     xT, holdT = final

@@ -1,0 +1,170 @@
+"""The segments path: one long recording cut into segments that run side by side as lanes.
+
+A single recording leaves the lanes layout (``_lanes.py``) nothing to put in its lanes, and a
+sequential scan is bound by XLA's cost per loop iteration (about 1 to 2 us per row here). But
+the filter forgets where it started: from the initial state, its estimates and covariance
+meet those of a filter that has run from the first row within a few thousand rows (measured
+on recorded-like bench sessions, float64: the state within 4e-8 after 4,096 rows and 4e-14
+after 8,192; in float32 the two meet float32's own rounding, about 1e-6, after 3,072). So
+each segment first runs ``warmup`` rows before its own from the initial state, in the same
+lanes as the others, and then its own rows from there: every segment in one lane, the whole
+recording in ``T / S + warmup`` scan iterations. The warm-up reads the inputs already
+computed for the segment before (one lane over), so nothing is computed twice but the scan.
+
+That is only exact if every warm-up has converged, so the path checks it: at each segment's
+first row the warmed-up state (mean, covariance and gyro hold) must equal the state the
+segment before it reached there, to ``tolerance`` (``segment_check``). Where a check fails
+(a long stretch with missing readings, say, during which the filter cannot forget), the
+recording is filtered by the sequential path instead, and ``run_filter`` and ``filter_batch``
+say so (``Estimate.path`` is ``"sequential"``).
+"""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Bool
+
+from .._kernel import Estimate, FilterState, SensorSeries, plausible
+from .._model import structure
+from .._params import Params
+from ._base import AbstractPath, kalman_only
+from ._lanes import NO_OP_INPUTS, lane_estimates, lane_inputs, lane_scan
+from ._sequential import Sequential
+
+
+class Segments(AbstractPath):
+    """One or a few long recordings, each cut into segments that run as lanes, every segment
+    warmed up over the rows before it, and checked (see the module docstring).
+
+    Exact for everything ``Sequential`` computes (irregular time steps, missing readings per
+    channel, the voltage noise model, padded trials, skipped updates) wherever the check
+    passes; where it fails, ``run`` computes the sequential path's result instead (and
+    ``run_checked`` says so).
+
+    Attributes:
+        lanes: about how many lanes (trials x segments) to fill.
+        warmup_float32, warmup_float64: the rows each segment runs before its own.
+        min_segments: ``Auto`` takes this path when each trial makes at least this many
+            segments (at least ``warmup`` rows each).
+        atol_float32, atol_float64: the check's bound on the mean (rad, rad/s) and, relative
+            to ``sqrt(P_ii P_jj)``, on the covariance (float32: the accuracy asked of every
+            path against the sequential one; float64: 1e-11).
+    """
+
+    name: ClassVar[str] = "segments"
+    lanes: int = eqx.field(static=True, default=64)
+    warmup_float32: int = eqx.field(static=True, default=3072)
+    warmup_float64: int = eqx.field(static=True, default=8192)
+    min_segments: int = eqx.field(static=True, default=4)
+    atol_float32: float = eqx.field(static=True, default=1e-5)
+    atol_float64: float = eqx.field(static=True, default=1e-11)
+
+    def warmup(self, dtype) -> int:
+        return self.warmup_float64 if jnp.dtype(dtype) == jnp.float64 else self.warmup_float32
+
+    def segments_of(self, n_trials: int, n_rows: int, dtype) -> int:
+        """How many segments each of ``n_trials`` trials of ``n_rows`` rows is cut into."""
+        per_trial = max(1, self.lanes // max(n_trials, 1))
+        return int(max(1, min(per_trial, n_rows // max(self.warmup(dtype), 1))))
+
+    def applies(self, params: Params, series: SensorSeries, method: str,
+                state: FilterState | None = None) -> str | None:
+        if method == "kf":
+            return ("the standard KF's torso angle and bias are unobservable (Eq. 21): it "
+                    "never forgets where it started, so no warm-up converges")
+        return kalman_only(method)
+
+    def pays(self, series: SensorSeries, dtype) -> str | None:
+        """Why ``Auto`` should not take this path for ``series`` (or ``None``)."""
+        shape = np.shape(series.dt)
+        B, T = (shape[0], shape[1]) if len(shape) > 1 else (1, shape[0])
+        n = self.segments_of(B, T, dtype)
+        if n < self.min_segments:
+            return (f"{T} rows make {n} segment(s) of {self.warmup(dtype)} rows or more, "
+                    f"fewer than {self.min_segments}")
+        return None
+
+    def run(self, params: Params, series: SensorSeries, method: str, state: FilterState
+            ) -> tuple[FilterState, Estimate]:
+        final, est, ok = self.run_checked(params, series, method, state)
+        return jax.lax.cond(ok, lambda: (final, est),
+                            lambda: Sequential().run(params, series, method, state))
+
+    def run_checked(self, params: Params, series: SensorSeries, method: str,
+                    state: FilterState) -> tuple[FilterState, Estimate, Bool[Array, ""]]:
+        """The segmented filter and whether every segment's check passed (if not, the
+        estimates are not the sequential path's: use ``run``, which falls back)."""
+        st = structure(params.robot, method)
+        dtype = state.z.dtype
+        series = plausible(params, jax.tree_util.tree_map(
+            lambda x: jnp.asarray(x).astype(dtype), series))
+        B, T = series.dt.shape
+        S = self.segments_of(B, T, dtype)
+        W = self.warmup(dtype) if S > 1 else 0
+        L = -(-T // S)
+
+        def padded(x, fill):  # (B, T, ...) -> (B, S * L, ...): no-op rows at the end
+            return jnp.pad(x, [(0, 0), (0, S * L - T)] + [(0, 0)] * (x.ndim - 2),
+                           constant_values=fill)
+
+        fills = (0.0, jnp.nan, jnp.nan)
+        rows = [padded(x, f) for x, f in zip((series.dt, series.gyro, series.hall_v), fills)]
+        own = lane_inputs(params, st, *(x.reshape((B * S, L) + x.shape[2:]) for x in rows))
+        z0, P0, h0 = (jnp.repeat(x, S, axis=0) for x in (state.z, state.P, state.gyro_hold))
+        if W:
+            # Segment s warms up over the last W rows of segment s - 1 (W <= L): the same
+            # inputs, one lane over; the first segment of a trial over no-op rows, so that it
+            # enters with the trial's own state.
+            first = np.arange(B * S) % S == 0
+
+            def warm(x, fill):
+                return jnp.where(first, fill, jnp.roll(x[L - W:], 1, axis=-1))
+
+            leaves, tree = jax.tree_util.tree_flatten(own)
+            warm_in = jax.tree_util.tree_unflatten(
+                tree, [warm(x, f) for x, f in zip(leaves, NO_OP_INPUTS, strict=True)])
+            zW, PW, hW, _ = lane_scan(params, st, z0, P0, h0, None, None, None,
+                                      rows_out=False, inputs=warm_in)
+        else:
+            zW, PW, hW = z0, P0, h0
+        zT, PT, hT, (z_rows, P_rows, skipped) = lane_scan(params, st, zW, PW, hW, None, None,
+                                                          None, inputs=own)
+        ok = segment_check(_split(zW, B, S), _split(PW, B, S), _split(hW, B, S),
+                           _split(zT, B, S), _split(PT, B, S), _split(hT, B, S),
+                           self.atol_float64 if dtype == jnp.float64 else self.atol_float32)
+        angles, std, bias = lane_estimates(st, z_rows, P_rows)
+
+        def trials(x):  # (B * S, L, ...) -> (B, T, ...)
+            return x.reshape((B, S * L) + x.shape[2:])[:, :T]
+
+        est = Estimate(trials(angles), trials(std), trials(bias),
+                       trials(jnp.moveaxis(skipped, 0, 1)))
+        final = FilterState(*(_split(x, B, S)[:, -1] for x in (zT, PT, hT)))
+        return final, est, ok
+
+
+def _split(x, B: int, S: int):
+    return x.reshape((B, S) + x.shape[1:])
+
+
+def segment_check(z_in, P_in, hold_in, z_out, P_out, hold_out, atol: float) -> Bool[Array, ""]:
+    """Whether every segment started where the one before it ended: per trial (``B S ...``),
+    the entering state of segment ``s >= 1`` against the final state of segment ``s - 1``:
+    the mean to ``atol``, the covariance to ``atol sqrt(P_ii P_jj)``, the gyro hold
+    exactly."""
+    if z_in.shape[1] < 2:
+        return jnp.asarray(True)
+    zi, zo = z_in[:, 1:], z_out[:, :-1]
+    Pi, Po = P_in[:, 1:], P_out[:, :-1]
+    d = jnp.sqrt(jnp.abs(jnp.diagonal(Po, axis1=-2, axis2=-1)))
+    scale = d[..., :, None] * d[..., None, :]
+    mean_ok = jnp.all(jnp.abs(zi - zo) <= atol)
+    cov_ok = jnp.all(jnp.abs(Pi - Po) <= atol * scale)
+    hold_ok = jnp.all(hold_in[:, 1:] == hold_out[:, :-1])
+    return mean_ok & cov_ok & hold_ok
+
