@@ -188,7 +188,7 @@ def lane_scan(params: Params, st: Structure, z0: Float[Array, "B Nb Nz"],
               gyro: Float[Array, "B T G"] | None, hall_v: Float[Array, "B T M"] | None,
               remat_chunk: int | None = None,
               innovations: bool = False, moments: bool = False, rows_out: bool = True,
-              inputs: tuple | None = None):
+              inputs: tuple | None = None, snapshot_row: int | None = None):
     """The Kalman filter over ``T`` rows of ``B`` trials, trials as lanes.
 
     Returns ``(zT, PT, holdT, rows)``: the final states (``B`` first, as given) and per row
@@ -200,7 +200,8 @@ def lane_scan(params: Params, st: Structure, z0: Float[Array, "B Nb Nz"],
     (``T, Ny, Nb, B`` and ``T, n_tri(Ny), Nb, B``: ``lane_step``'s), for the smoother.
     ``rows_out=False``: no rows kept (``rows`` is ``None``; the final states only).
     ``inputs``: ``lane_inputs(params, st, dt, gyro, hall_v)``, computed beforehand (then
-    ``dt``, ``gyro`` and ``hall_v`` are not read)."""
+    ``dt``, ``gyro`` and ``hall_v`` are not read). ``snapshot_row``: also return the states
+    after that many rows, ``(z, P, hold)`` as the final ones, as a fifth item."""
     robot = params.robot
     dtype = z0.dtype
     nz = st.n_z
@@ -232,7 +233,7 @@ def lane_scan(params: Params, st: Structure, z0: Float[Array, "B Nb Nz"],
     def body(carry, row):
         # The state as one array (z entries, then P's upper triangle; each (Nb, B)) and the
         # held gyro rates: one output per step.
-        x, hold = carry
+        x, hold = carry[:2]
         ts, (alpha, beta, gamma), hb_r, rb_r, vb_r, g_r = row
         tsb = jnp.broadcast_to(ts, (nb,) + ts.shape)
         out = lane_step(st, consts, x[:nz], x[nz:], rates_of(hold), (alpha, beta, gamma),
@@ -241,39 +242,49 @@ def lane_scan(params: Params, st: Structure, z0: Float[Array, "B Nb Nz"],
         fin = jnp.isfinite(x_new).all(axis=(0, 1))
         x_new = jnp.where(fin, x_new, x)
         hold = jnp.where(fin & jnp.isfinite(g_r), g_r, hold)
+        new = (x_new, hold)
+        if snapshot_row is not None:  # the states after row snapshot_row - 1, kept
+            i, x_snap, hold_snap = carry[2:]
+            take = i == snapshot_row - 1
+            new += (i + 1, jnp.where(take, x_new, x_snap), jnp.where(take, hold, hold_snap))
         if innovations:
             nu, s = out[2]
-            return (x_new, hold), (nu, s, vb_r & fin)
+            return new, (nu, s, vb_r & fin)
         if moments:
-            return (x_new, hold), (x_new, ~fin) + out[2]
+            return new, (x_new, ~fin) + out[2]
         if not rows_out:
-            return (x_new, hold), None
-        return (x_new, hold), (x_new, ~fin)
+            return new, None
+        return new, (x_new, ~fin)
 
     x0 = jnp.stack([jnp.moveaxis(z0[:, :, i], 0, 1) for i in range(nz)]
                    + [jnp.moveaxis(P0[:, :, i, j], 0, 1) for i, j in tri])
     hold = jnp.moveaxis(hold0[:, used], 0, 1)
+    carry = (x0, hold)
+    if snapshot_row is not None:
+        carry += (jnp.asarray(0), x0, hold)
     if remat_chunk:
         # No-op rows pad the last chunk: no time step, every reading missing.
-        final, out = chunked_scan(body, (x0, hold), rows, remat_chunk, NO_OP_INPUTS)
+        final, out = chunked_scan(body, carry, rows, remat_chunk, NO_OP_INPUTS)
     else:
         # Each row recomputed under reverse mode (only the carries saved): the transposed
         # body then runs as one piece (64 x 10,000 bench, float32: gradient 3.7 -> 3.0 s).
-        final, out = jax.lax.scan(jax.checkpoint(body), (x0, hold), rows)
+        final, out = jax.lax.scan(jax.checkpoint(body), carry, rows)
     if not rows_out:
         out = None
     elif not innovations:
         xs, skipped = out[:2]
         out = (xs[:, :nz], xs[:, nz:], skipped) + tuple(out[2:])
-    xT, holdT = final
-    zT, PT = list(xT[:nz]), list(xT[nz:])
-    zT = jnp.moveaxis(jnp.stack(zT), (0, 1, 2), (2, 1, 0))  # (B, Nb, Nz)
-    PT_full = jnp.zeros((z0.shape[0], nb, nz, nz), dtype)
-    for (i, j), x in zip(tri, PT):
-        x = jnp.moveaxis(x, 0, 1)
-        PT_full = PT_full.at[:, :, i, j].set(x).at[:, :, j, i].set(x)
-    hold_full = hold0.at[:, used].set(jnp.moveaxis(holdT, 0, 1))
-    return zT, PT_full, hold_full, out
+    def states(x, h):  # lanes layout -> (B, Nb, Nz), (B, Nb, Nz, Nz), (B, G)
+        z = jnp.moveaxis(x[:nz], (0, 1, 2), (2, 1, 0))
+        P = jnp.zeros((z0.shape[0], nb, nz, nz), dtype)
+        for (i, j), p in zip(tri, x[nz:]):
+            p = jnp.moveaxis(p, 0, 1)
+            P = P.at[:, :, i, j].set(p).at[:, :, j, i].set(p)
+        return z, P, hold0.at[:, used].set(jnp.moveaxis(h, 0, 1))
+
+    if snapshot_row is not None:
+        return states(*final[:2]) + (out, states(*final[3:]))
+    return states(*final[:2]) + (out,)
 
 
 def lane_estimates(st: Structure, z_rows: Float[Array, "T Nz Nb B"],

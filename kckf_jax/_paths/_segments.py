@@ -8,7 +8,7 @@ on recorded-like bench sessions, float64: the state within 4e-8 after 4,096 rows
 after 8,192; in float32 the two meet float32's own rounding, about 1e-6, after 3,072). So
 each segment first runs ``warmup`` rows before its own from the initial state, in the same
 lanes as the others, and then its own rows from there: every segment in one lane, the whole
-recording in ``T / S + warmup`` scan iterations. The warm-up reads the inputs already
+recording in one scan of ``T / S + warmup`` iterations. The warm-up reads the inputs already
 computed for the segment before (one lane over), so nothing is computed twice but the scan.
 
 That is only exact if every warm-up has converged, so the path checks it: at each segment's
@@ -116,24 +116,23 @@ class Segments(AbstractPath):
         rows = [padded(x, f) for x, f in zip((series.dt, series.gyro, series.hall_v), fills)]
         own = lane_inputs(params, st, *(x.reshape((B * S, L) + x.shape[2:]) for x in rows))
         z0, P0, h0 = (jnp.repeat(x, S, axis=0) for x in (state.z, state.P, state.gyro_hold))
+        inputs = own
         if W:
-            # Segment s warms up over the last W rows of segment s - 1 (W <= L): the same
-            # inputs, one lane over; the first segment of a trial over no-op rows, so that it
-            # enters with the trial's own state.
+            # Segment s first runs the last W rows of segment s - 1 (W <= L): the same
+            # inputs, one lane over, in the same scan; the first segment of a trial runs W
+            # no-op rows, which leave its entering state exactly as it was.
             first = np.arange(B * S) % S == 0
 
             def warm(x, fill):
-                return jnp.where(first, fill, jnp.roll(x[L - W:], 1, axis=-1))
+                w = jnp.where(first, fill, jnp.roll(x[L - W:], 1, axis=-1))
+                return jnp.concatenate([w, x])
 
             leaves, tree = jax.tree_util.tree_flatten(own)
-            warm_in = jax.tree_util.tree_unflatten(
+            inputs = jax.tree_util.tree_unflatten(
                 tree, [warm(x, f) for x, f in zip(leaves, NO_OP_INPUTS, strict=True)])
-            zW, PW, hW, _ = lane_scan(params, st, z0, P0, h0, None, None, None,
-                                      rows_out=False, inputs=warm_in)
-        else:
-            zW, PW, hW = z0, P0, h0
-        zT, PT, hT, (z_rows, P_rows, skipped) = lane_scan(params, st, zW, PW, hW, None, None,
-                                                          None, inputs=own)
+        zT, PT, hT, (z_rows, P_rows, skipped), (zW, PW, hW) = lane_scan(
+            params, st, z0, P0, h0, None, None, None, inputs=inputs, snapshot_row=W)
+        z_rows, P_rows, skipped = z_rows[W:], P_rows[W:], skipped[W:]
         ok = segment_check(_split(zW, B, S), _split(PW, B, S), _split(hW, B, S),
                            _split(zT, B, S), _split(PT, B, S), _split(hT, B, S),
                            self.atol_float64 if dtype == jnp.float64 else self.atol_float32)
