@@ -52,17 +52,15 @@ def rng():
 
 @pytest.fixture(scope="session")
 def demo_results(tmp_path_factory):
-    """``kckf demo`` run once for the whole test session: its results.json, its output folder
-    (``"_out"``) and what it printed (``"_stdout"``, ``"_stderr"``)."""
-    import contextlib
-    import io
+    """``kckf demo`` run once for the whole test session, as a user runs it (its own process,
+    float32, the console entry point): its results.json, its output folder (``"_out"``) and
+    what it printed (``"_stdout"``, ``"_stderr"``)."""
     import json
-
-    from kckf_jax.cli import main
+    import subprocess
 
     out = tmp_path_factory.mktemp("demo")
-    stdout, stderr = io.StringIO(), io.StringIO()
-    with contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(stderr):
-        assert main(["demo", "--out", str(out)]) == 0
+    r = subprocess.run([sys.executable, "-m", "kckf_jax", "demo", "--out", str(out)],
+                       capture_output=True, text=True, timeout=280)
+    assert r.returncode == 0, r.stderr[-3000:]
     return json.loads((out / "results.json").read_text()) | {
-        "_out": str(out), "_stdout": stdout.getvalue(), "_stderr": stderr.getvalue()}
+        "_out": str(out), "_stdout": r.stdout, "_stderr": r.stderr}
