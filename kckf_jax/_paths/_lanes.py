@@ -187,7 +187,7 @@ def lane_scan(params: Params, st: Structure, z0: Float[Array, "B Nb Nz"],
               dt: Float[Array, "B T"] | None,
               gyro: Float[Array, "B T G"] | None, hall_v: Float[Array, "B T M"] | None,
               remat_chunk: int | None = None,
-              innovations: bool = False, moments: bool = False, rows_out: bool = True,
+              innovations: bool = False, moments: bool = False,
               inputs: tuple | None = None, snapshot_row: int | None = None):
     """The Kalman filter over ``T`` rows of ``B`` trials, trials as lanes.
 
@@ -198,7 +198,6 @@ def lane_scan(params: Params, st: Structure, z0: Float[Array, "B Nb Nz"],
     its variance and whether it was used (the likelihood's terms; no estimates kept).
     ``moments``: ``rows`` is ``(z, P, skipped, y, S)``, with each row's predicted moments
     (``T, Ny, Nb, B`` and ``T, n_tri(Ny), Nb, B``: ``lane_step``'s), for the smoother.
-    ``rows_out=False``: no rows kept (``rows`` is ``None``; the final states only).
     ``inputs``: ``lane_inputs(params, st, dt, gyro, hall_v)``, computed beforehand (then
     ``dt``, ``gyro`` and ``hall_v`` are not read). ``snapshot_row``: also return the states
     after that many rows, ``(z, P, hold)`` as the final ones, as a fifth item."""
@@ -252,8 +251,6 @@ def lane_scan(params: Params, st: Structure, z0: Float[Array, "B Nb Nz"],
             return new, (nu, s, vb_r & fin)
         if moments:
             return new, (x_new, ~fin) + out[2]
-        if not rows_out:
-            return new, None
         return new, (x_new, ~fin)
 
     x0 = jnp.stack([jnp.moveaxis(z0[:, :, i], 0, 1) for i in range(nz)]
@@ -269,9 +266,7 @@ def lane_scan(params: Params, st: Structure, z0: Float[Array, "B Nb Nz"],
         # Each row recomputed under reverse mode (only the carries saved): the transposed
         # body then runs as one piece (64 x 10,000 bench, float32: gradient 3.7 -> 3.0 s).
         final, out = jax.lax.scan(jax.checkpoint(body), carry, rows)
-    if not rows_out:
-        out = None
-    elif not innovations:
+    if not innovations:
         xs, skipped = out[:2]
         out = (xs[:, :nz], xs[:, nz:], skipped) + tuple(out[2:])
     def states(x, h):  # lanes layout -> (B, Nb, Nz), (B, Nb, Nz, Nz), (B, G)

@@ -13,7 +13,7 @@ computed for the segment before (one lane over), so nothing is computed twice bu
 
 That is only exact if every warm-up has converged, so the path checks it: at each segment's
 first row the warmed-up state (mean, covariance and gyro hold) must equal the state the
-segment before it reached there, to ``tolerance`` (``segment_check``). Where a check fails
+segment before it reached there, to ``atol`` (``segment_check``). Where a check fails
 (a long stretch with missing readings, say, during which the filter cannot forget), the
 recording is filtered by the sequential path instead, and ``run_filter`` and ``filter_batch``
 say so (``Estimate.path`` is ``"sequential"``).
@@ -66,6 +66,9 @@ class Segments(AbstractPath):
 
     def warmup(self, dtype) -> int:
         return self.warmup_float64 if jnp.dtype(dtype) == jnp.float64 else self.warmup_float32
+
+    def atol(self, dtype) -> float:
+        return self.atol_float64 if jnp.dtype(dtype) == jnp.float64 else self.atol_float32
 
     def segments_of(self, n_trials: int, n_rows: int, dtype) -> int:
         """How many segments each of ``n_trials`` trials of ``n_rows`` rows is cut into."""
@@ -135,7 +138,7 @@ class Segments(AbstractPath):
         z_rows, P_rows, skipped = z_rows[W:], P_rows[W:], skipped[W:]
         ok = segment_check(_split(zW, B, S), _split(PW, B, S), _split(hW, B, S),
                            _split(zT, B, S), _split(PT, B, S), _split(hT, B, S),
-                           self.atol_float64 if dtype == jnp.float64 else self.atol_float32)
+                           self.atol(dtype))
         angles, std, bias = lane_estimates(st, z_rows, P_rows)
 
         def trials(x):  # (B * S, L, ...) -> (B, T, ...)
