@@ -79,17 +79,11 @@ def hall_voltage(
     ``[v_lo, v_hi]`` (V; the model is monotone, so the root is unique). Used by the simulator.
     """
     target = np.asarray(angle_rad, dtype=np.float64)
-    a, b, c, d, sign = (np.broadcast_to(np.asarray(x, dtype=np.float64), target.shape)
+    shape = target.shape
+    a, b, c, d, sign = (np.broadcast_to(np.asarray(x, dtype=np.float64), shape).ravel()
                         for x in (a, b, c, d, sign))
+    target = target.ravel()
     (w1, w2), (k1, k2) = hall_exponentials(a, b, c, d, sign)
-    lo = np.full(target.shape, v_lo)
-    hi = np.full(target.shape, v_hi)
-
-    def f(v):  # increasing in v whatever the sign
-        return sign * (w1 * np.exp(k1 * v) + w2 * np.exp(k2 * v) - target)
-
-    def slope(v):
-        return sign * (w1 * k1 * np.exp(k1 * v) + w2 * k2 * np.exp(k2 * v))
 
     # Start from whichever exponential dominates at the target.
     signed = target * sign
@@ -97,15 +91,29 @@ def hall_voltage(
         v = np.where(signed > 0, np.log(np.maximum(signed, 1e-300) / a) / b,
                      -np.log(np.maximum(-signed, 1e-300) / c) / d)
     v = np.clip(np.nan_to_num(v, nan=0.5 * (v_lo + v_hi)), v_lo, v_hi)
+    # Each reading iterates until its own step is below 1e-13 V or its residual is at the
+    # rounding level of Eq. 1's terms (it is then kept: past that point a Newton step rounds
+    # onto the bracket's end, which reads as leaving the bracket and bisects away, and up to
+    # 40 steps walk back to the same root); the converged ones leave the active set.
+    active = np.arange(target.size)
+    lo = np.full(target.size, v_lo)
+    hi = np.full(target.size, v_hi)
+    va = v
     for _ in range(100):
-        fv = f(v)
-        lo = np.where(fv < 0, v, lo)
-        hi = np.where(fv >= 0, v, hi)
-        v_new = v - fv / slope(v)
-        outside = (v_new <= lo) | (v_new >= hi)
-        v_new = np.where(outside, 0.5 * (lo + hi), v_new)
-        if np.all(np.abs(v_new - v) < 1e-13):
-            v = v_new
+        sg, t = sign[active], target[active]
+        e1, e2 = np.exp(k1[active] * va), np.exp(k2[active] * va)
+        fv = sg * (w1[active] * e1 + w2[active] * e2 - t)  # increasing in v whatever the sign
+        slope = sg * (w1[active] * k1[active] * e1 + w2[active] * k2[active] * e2)
+        la = np.where(fv < 0, va, lo[active])
+        ha = np.where(fv >= 0, va, hi[active])
+        v_new = va - fv / slope
+        v_new = np.where((v_new <= la) | (v_new >= ha), 0.5 * (la + ha), v_new)
+        scale = np.abs(w1[active] * e1) + np.abs(w2[active] * e2) + np.abs(t)
+        at_root = np.abs(fv) <= 4 * np.finfo(float).eps * scale
+        done = at_root | (np.abs(v_new - va) < 1e-13)
+        v[active], lo[active], hi[active] = np.where(at_root, va, v_new), la, ha
+        active = active[~done]
+        if not active.size:
             break
-        v = v_new
-    return v
+        va = v[active]
+    return v.reshape(shape)

@@ -93,6 +93,22 @@ def test_hall_voltage_inverts_the_model():
         np.testing.assert_allclose(np.asarray(hall_angle(v, a, b, c, d, sign)), ang, atol=1e-10)
 
 
+def test_hall_voltage_is_the_root_to_rounding_on_the_saturating_side_too():
+    """Against plain bisection (200 halvings of [-2, 6] V, float64): the inverse stops at the
+    root where Newton reaches the rounding floor (e.g. -60 deg with sign +1, where the next
+    step rounds onto the bracket's end) instead of bisecting away from it."""
+    ang = np.linspace(-120.0, 120.0, 4001) * DEG
+    a, b, c, d = 0.07 * DEG, 2.87, 2.22e5 * DEG, 8.43
+    for sign in (1.0, -1.0):
+        lo, hi = np.full(ang.shape, -2.0), np.full(ang.shape, 6.0)
+        for _ in range(200):
+            mid = 0.5 * (lo + hi)
+            above = sign * (np.asarray(hall_angle(mid, a, b, c, d, sign)) - ang) >= 0
+            lo, hi = np.where(above, lo, mid), np.where(above, mid, hi)
+        np.testing.assert_allclose(hall_voltage(ang, a, b, c, d, sign), 0.5 * (lo + hi),
+                                   rtol=0, atol=1e-12)
+
+
 def test_drops_mocap_clock_and_roundtrip(tmp_path):
     s = simulate("x,y,x,y", "human", seed=8, duration_s=10.0, drop_prob=0.05)
     frac = np.isnan(s.hall_v).mean()
