@@ -91,10 +91,10 @@ def hall_voltage(
         v = np.where(signed > 0, np.log(np.maximum(signed, 1e-300) / a) / b,
                      -np.log(np.maximum(-signed, 1e-300) / c) / d)
     v = np.clip(np.nan_to_num(v, nan=0.5 * (v_lo + v_hi)), v_lo, v_hi)
-    # Each reading iterates until its own step is below 1e-13 V or its residual is at the
-    # rounding level of Eq. 1's terms (it is then kept: past that point a Newton step rounds
-    # onto the bracket's end, which reads as leaving the bracket and bisects away, and up to
-    # 40 steps walk back to the same root); the converged ones leave the active set.
+    # Each reading iterates until its own Newton step is below 1e-13 V, measured before the
+    # bracket's safeguard: at the root the step rounds onto the bracket's end, which the
+    # safeguard reads as leaving the bracket and bisects away from (up to 40 steps back to the
+    # same root). The converged ones leave the active set.
     active = np.arange(target.size)
     lo = np.full(target.size, v_lo)
     hi = np.full(target.size, v_hi)
@@ -106,12 +106,12 @@ def hall_voltage(
         slope = sg * (w1[active] * k1[active] * e1 + w2[active] * k2[active] * e2)
         la = np.where(fv < 0, va, lo[active])
         ha = np.where(fv >= 0, va, hi[active])
-        v_new = va - fv / slope
-        v_new = np.where((v_new <= la) | (v_new >= ha), 0.5 * (la + ha), v_new)
-        scale = np.abs(w1[active] * e1) + np.abs(w2[active] * e2) + np.abs(t)
-        at_root = np.abs(fv) <= 4 * np.finfo(float).eps * scale
-        done = at_root | (np.abs(v_new - va) < 1e-13)
-        v[active], lo[active], hi[active] = np.where(at_root, va, v_new), la, ha
+        newton = va - fv / slope
+        converged = np.abs(newton - va) < 1e-13
+        outside = ~converged & ((newton <= la) | (newton >= ha))
+        v_new = np.where(outside, 0.5 * (la + ha), newton)
+        done = converged | (np.abs(v_new - va) < 1e-13)
+        v[active], lo[active], hi[active] = v_new, la, ha
         active = active[~done]
         if not active.size:
             break
