@@ -388,8 +388,9 @@ def scan_filter(
 
     ``remat_chunk``: split the scan into chunks of this many steps and recompute each chunk's
     intermediate values in the backward pass (``jax.checkpoint``), so a gradient through
-    ``T`` steps stores about ``T / remat_chunk + remat_chunk`` states instead of every
-    intermediate of every step. The forward result is unchanged.
+    ``T`` steps stores about ``T / remat_chunk + remat_chunk`` states instead of all ``T``.
+    Either way each row's intermediate values are recomputed in the backward pass (only the
+    states are stored). The forward result is unchanged.
     """
     check_method(method)
     if state is None:
@@ -399,7 +400,10 @@ def scan_filter(
         return step(params, carry, row, method)
 
     if not remat_chunk:
-        return jax.lax.scan(body, state, series)
+        # Each row recomputed under reverse mode (only the carries saved), as on the lanes
+        # path: 3 trials x 4,000 recorded-like bench rows, float32, the RMSE gradient 0.28 ->
+        # 0.20 s (the same values to the bit; compile 6.7 -> 5.9 s).
+        return jax.lax.scan(jax.checkpoint(body), state, series)
     # Padding rows (dt = 0, every reading missing) are no-op steps.
     return chunked_scan(body, state, series, int(remat_chunk), (0.0, jnp.nan, jnp.nan))
 
@@ -421,9 +425,12 @@ def chunked_scan(body, carry, rows, chunk: int, fill):
                                                                              strict=True)])
     chunks = jax.tree_util.tree_map(lambda x: x.reshape((n, chunk) + x.shape[1:]), rows)
 
+    # Within a chunk each row is checkpointed too (3 x 10,000 recorded-like bench rows in
+    # chunks of 100, float32: the sequential path's gradient 0.82 -> 0.72 s, the same values,
+    # compile 9.2 -> 7.8 s; the lanes path's on 64 trials 4.1 -> 3.9 s, within noise).
     @jax.checkpoint
     def chunk_body(c, r):
-        return jax.lax.scan(body, c, r)
+        return jax.lax.scan(jax.checkpoint(body), c, r)
 
     final, out = jax.lax.scan(chunk_body, carry, chunks)
     out = jax.tree_util.tree_map(lambda x: x.reshape((n * chunk,) + x.shape[2:])[:T], out)
