@@ -54,7 +54,7 @@ def gradient_step(trials: int, steps: int) -> dict:
     cfg = FitConfig(steps=6)
     params = initial_params(sessions, cfg, jnp.float32)
     diff, static = eqx.partition(params, eqx.is_array)
-    chunk = int(np.ceil(np.sqrt(steps)))  # fit's default above 50,000 trial-steps
+    chunk = int(np.ceil(np.sqrt(steps)))  # fit's chunk length above REMAT_ABOVE_STEPS trial-steps
     mem = {}
     for name, c in (("chunked", chunk), ("plain", None)):
         path = choose_path(params, batch.series, "kckf", Auto(sequential=Sequential(c))).path
