@@ -1,6 +1,7 @@
 """Recorded-like data at full speed: kckf-jax's paths against dynamax and filterpy.
 
     python benchmarks/recorded.py [--json] [--quick] [--robots bench,3d]
+                                  [--no-peers] [--cases batch,trials,hour,fit]
 
 Data: what ``kckf simulate`` writes and what a recording has: jittered timestamps (the
 microcontroller's sampling jitter), 1 % of the readings missing, channel by channel, and the
@@ -19,10 +20,12 @@ How the peers are given what they cannot express:
 
 Cases: 64 trials x 10,000 rows; trial counts 1 to 1,024 at 5,000 rows (kckf-jax); one
 recorded-like hour (360,000 rows: the segments path, against the sequential one and the lanes
-layout with one lane); one fitting step on 64 x 10,000 rows through ``fit`` with
-the default ``FitConfig``, its compile and the peak memory, and the fitting step on regular
-data (the steady path's gradient compile). Accuracy: the largest angle difference from
-kckf-jax's float64 sequential filter on the same rows.
+layout with one lane), and the same hour with a 100 s dropout of every reading (the segments'
+repair passes, against the sequential fallback they replace); one fitting step on 64 x
+10,000 rows through ``fit`` with the default ``FitConfig``, its compile and the peak
+memory, and the fitting step on regular data (the steady path's gradient compile).
+Accuracy: the largest angle difference from kckf-jax's float64 sequential filter on the same
+rows.
 """
 
 from __future__ import annotations
@@ -252,10 +255,24 @@ def angles_of_x(x, robot):
 # --------------------------------------------------------------------------- cases
 def run_robot(name, spec, args):
     robot = kk.Robot.from_spec(spec)
-    res = {}
+    cases = args.cases.split(",")
     B, T = (8, 2000) if args.quick else (64, 10_000)
     sess = trials(robot, B, T)
     p32 = params_of(robot, sess, jnp.float32)
+    res = {}
+    if "batch" in cases:
+        res["batch"] = batch_case(name, spec, robot, sess, p32, args, B, T)
+    if "trials" in cases:
+        res["trials"] = trials_case(name, robot, p32, args)
+    if "hour" in cases:
+        res["hour"] = hour_case(name, spec, robot, p32, args)
+    if name == "bench" and "fit" in cases:
+        res["fit"] = fit_steps(robot, args)
+    return res
+
+
+def batch_case(name, spec, robot, sess, p32, args, B, T):
+    """The B x T batch: kckf-jax's paths, dynamax and filterpy."""
     b32 = batch_of(sess, jnp.float32)
     ref, lanes64 = reference(spec, B, T)
 
@@ -287,9 +304,11 @@ def run_robot(name, spec, args):
         batch["filterpy loop (1 trial, float64)"] = {
             "trial_steps_per_s": n / t, "max_err_rad": float(np.abs(angles_of_x(out, robot)
                                                                      - ref[0, :n]).max())}
-    res["batch"] = batch
+    return batch
 
-    # Trial counts (kckf-jax): per-trial throughput from 1 to 1,024 trials.
+
+def trials_case(name, robot, p32, args):
+    """Trial counts (kckf-jax): per-trial throughput from 1 to 1,024 trials."""
     scaling = {}
     Ts = 1000 if args.quick else 5000
     for n in ((1, 8, 64) if args.quick else (1, 8, 16, 64, 256, 1024)):
@@ -303,9 +322,11 @@ def run_robot(name, spec, args):
             row[path] = n * Ts / t
         row["auto_path"] = kk.choose_path(p32, bb, "kckf").path.name
         scaling[n] = row
-    res["trials"] = scaling
+    return scaling
 
-    # One recorded-like hour.
+
+def hour_case(name, spec, robot, p32, args):
+    """One recorded-like hour: the segments path against the sequential one and one lane."""
     L = 36_000 if args.quick else 360_000
     log(f"{name}: one hour")
     hour = kk.simulate(robot, "static", seed=3, duration_s=L / 100.0, drop_prob=0.01)
@@ -323,10 +344,30 @@ def run_robot(name, spec, args):
                                                              - ref_hour)))}
     long["kckf-jax auto"]["path"] = kk.choose_path(p32, ser, "kckf").path.name
     long["kckf-jax segments, float64"] = HOUR_FLOAT64[spec]
-    res["hour"] = long
-    if name == "bench":
-        res["fit"] = fit_steps(robot, args)
-    return res
+    # The same hour with every reading lost for 100 s (a cable pulled out, 10,000 rows from
+    # row 100,000, or a tenth of the quick hour): the warm-ups inside the gap cannot forget,
+    # so the segments' check fails; the repair passes make it exact, where the old path
+    # (repairs=0) fell back to the sequential one. Errors against the float32 sequential
+    # path (through the gap both are dead reckoning, 1.5e-4 rad from float64 there).
+    n, r0 = L // 36, L * 5 // 18
+    gyro, hall = np.array(ser.gyro), np.array(ser.hall_v)
+    gyro[r0: r0 + n] = np.nan
+    hall[r0: r0 + n] = np.nan
+    holed = kk.SensorSeries(ser.dt, jnp.asarray(gyro), jnp.asarray(hall))
+    seq = None
+    gap = {}
+    for label, path in (("kckf-jax sequential", "sequential"),
+                        ("kckf-jax segments (repairs=2, default)", kk.Segments()),
+                        ("kckf-jax segments (repairs=0)", kk.Segments(repairs=0))):
+        est, t, first = timed(lambda path=path: kk.run_filter(p32, holed, "kckf", path=path)[1],
+                              repeats=3)
+        seq = np.asarray(est.angles) if seq is None else seq
+        gap[label] = {"steps_per_s": L / t, "seconds": t, "compile_s": first - t,
+                      "path_that_ran": est.path,
+                      "max_diff_from_sequential_rad": float(np.abs(np.asarray(est.angles)
+                                                                   - seq).max())}
+    long[f"with a {n / 100:.0f} s dropout"] = gap
+    return long
 
 
 def fit_steps(robot, args):
@@ -367,6 +408,8 @@ def main():
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--robots", default="bench,3d")
     ap.add_argument("--no-peers", action="store_true")
+    ap.add_argument("--cases", default="batch,trials,hour,fit",
+                    help="which cases to run (comma-separated; default all)")
     args = ap.parse_args()
     doc = {"benchmark": "recorded", "machine": machine(), "date": time.strftime("%Y-%m-%d"),
            "jax": jax.__version__, "backend": jax.default_backend(),

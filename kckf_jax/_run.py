@@ -93,7 +93,7 @@ def run_filter(
         if bool(ok):
             return final, dataclasses.replace(est, path=chosen.name,
                                               names=params.robot.angle_names)
-        chosen = Sequential()  # a warm-up did not converge: the segments' check failed
+        chosen = Sequential()  # the segments' check failed, and so did its repairs
     final, est = _run_one(chosen, params, series, method, state)
     return final, dataclasses.replace(est, path=chosen.name, names=params.robot.angle_names)
 
@@ -135,7 +135,7 @@ def filter_batch(params: Params, series: SensorSeries, method: str = "kckf",
         est, ok = _run_batch_checked(chosen, params, series, method)
         if bool(ok):
             return dataclasses.replace(est, path=chosen.name, names=params.robot.angle_names)
-        chosen = Sequential()  # a warm-up did not converge: the segments' check failed
+        chosen = Sequential()  # the segments' check failed, and so did its repairs
     est = _run_batch(chosen, params, series, method)
     return dataclasses.replace(est, path=chosen.name, names=params.robot.angle_names)
 

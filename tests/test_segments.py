@@ -1,6 +1,6 @@
 """The segments path (one long recording cut into warmed-up segments run as lanes) equals the
-sequential filter wherever its check passes, falls back to it where the check fails, says
-which ran, and ``Auto`` takes it for long recordings only.
+sequential filter wherever its check passes (at once or after a repair pass), falls back to
+it where the repairs fail too, says which ran, and ``Auto`` takes it for long recordings only.
 
 Most tests use small constants (``SMALL``: warm-ups of 800 rows, a few lanes) and noise that
 makes the filter forget its start within ~800 rows, so each property is checked on a few
@@ -9,6 +9,9 @@ thousand rows; one checks the defaults at full size in float32.
 
 from __future__ import annotations
 
+import dataclasses
+
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -101,33 +104,47 @@ def test_segments_batch_of_uneven_trials_and_an_entering_state():
           1e-9)
 
 
-def test_a_failed_check_falls_back_to_the_sequential_path():
+def test_a_failed_check_is_repaired_else_falls_back_to_the_sequential_path():
     """Warm-ups too short to forget the start (or a gyro channel missing through a whole
-    warm-up): the check fails, ``run_filter`` runs and names the sequential path, and under
-    ``jit`` (no host check) ``Segments.run`` gives the sequential result too."""
+    warm-up): the check fails; a repair pass (every segment's rows again from where the one
+    before ended) makes the segments exact, and ``run_filter`` says the segments ran. Where
+    the segments are too short for the repair to converge as well, ``run_filter`` runs and
+    names the sequential path, and under ``jit`` (no host check) ``Segments.run`` gives the
+    sequential result too."""
     robot = Robot.from_spec("x,y")
     s, series = recorded_like(robot, 4, 4800)
     params = fast(robot, s)
-    short = Segments(lanes=6, warmup_float64=5, min_segments=2)
     st = init_state(params, "kckf")
     one = jax.tree_util.tree_map(lambda x: jnp.asarray(x)[None], (series, st))
-    _, _, ok = short.run_checked(params, one[0], "kckf", one[1])
-    assert not bool(ok)
+    checked = eqx.filter_jit(lambda path, *a: path.run_checked(params, *a)[1:])
     _, ref = run_filter(params, series, "kckf", path="sequential")
-    _, est = run_filter(params, series, "kckf", path=short)
+    # Six segments of 800 rows, warm-ups of 5 rows: the first pass is wrong by degrees ...
+    short = Segments(lanes=6, warmup_float64=5, min_segments=2)
+    est, ok = checked(dataclasses.replace(short, repairs=0), one[0], "kckf", one[1])
+    assert not bool(ok) and np.abs(np.asarray(est.angles[0] - ref.angles)).max() > 1e-3
+    # ... and one repair pass makes it exact: each segment ran 800 rows from its start.
+    est, ok = checked(short, one[0], "kckf", one[1])
+    assert bool(ok)
+    close(est.angles[0], ref.angles, 1e-9)
+    # Forty-eight segments of 100 rows: a repair pass does not converge either.
+    tiny = Segments(lanes=48, warmup_float64=5, min_segments=2)
+    _, est = run_filter(params, series, "kckf", path=tiny)
     assert est.path == "sequential"
     np.testing.assert_array_equal(np.asarray(est.angles), np.asarray(ref.angles))
-    jitted = jax.jit(lambda p, x, s0: short.run(p, x, "kckf", s0)[1].angles)
+    jitted = jax.jit(lambda p, x, s0: tiny.run(p, x, "kckf", s0)[1].angles)
     close(jitted(params, *one)[0], ref.angles, 1e-12)
     # A gyro channel missing through the whole warm-up of the fourth segment (rows 1600 to
-    # 2399): it enters holding the starting value, not the reading before the gap.
+    # 2399): it enters holding the starting value, not the reading before the gap, so the
+    # check fails; the repair enters it with the hold the third segment ended with.
     gyro = np.asarray(series.gyro).copy()
     gyro[1000:2500, 0] = np.nan
     gap = SensorSeries(series.dt, gyro, series.hall_v)
-    _, est = run_filter(params, gap, "kckf", path=SMALL)
     _, ref = run_filter(params, gap, "kckf", path="sequential")
-    assert est.path == "sequential"
-    close(est.angles, ref.angles, 1e-12)
+    gap1 = jax.tree_util.tree_map(lambda x: jnp.asarray(x)[None], gap)
+    assert not bool(checked(dataclasses.replace(SMALL, repairs=0), gap1, "kckf", one[1])[1])
+    _, est = run_filter(params, gap, "kckf", path=SMALL)
+    assert est.path == "segments"
+    close(est.angles, ref.angles, 1e-9)
 
 
 def test_auto_takes_segments_for_long_recordings_only():

@@ -14,9 +14,14 @@ computed for the segment before (one lane over), so nothing is computed twice bu
 That is only exact if every warm-up has converged, so the path checks it: at each segment's
 first row the warmed-up state (mean, covariance and gyro hold) must equal the state the
 segment before it reached there, to ``atol`` (``segment_check``). Where a check fails
-(a long stretch with missing readings, say, during which the filter cannot forget), the
-recording is filtered by the sequential path instead, and ``run_filter`` and ``filter_batch``
-say so (``Estimate.path`` is ``"sequential"``).
+(a long stretch with missing readings, say, during which the filter cannot forget), a repair
+pass runs every segment's own rows again, each entering where the one before it ended (the
+first segments enter as before): a segment whose predecessor was right is now exactly right,
+and the pass is checked the same way (every segment must end where it ended in the pass
+before, so that the next one entered right). One pass costs ``T / S`` iterations, about two
+thirds of the first (``T / S + warmup``), where the sequential path costs ``T``. Only where
+the repairs fail too is the recording filtered by the sequential path, and ``run_filter`` and
+``filter_batch`` say so (``Estimate.path`` is ``"sequential"``).
 """
 
 from __future__ import annotations
@@ -43,8 +48,8 @@ class Segments(AbstractPath):
 
     Exact for everything ``Sequential`` computes (irregular time steps, missing readings per
     channel, the voltage noise model, padded trials, skipped updates) wherever the check
-    passes; where it fails, ``run`` computes the sequential path's result instead (and
-    ``run_checked`` says so).
+    passes, at once or after a repair pass; where it fails after ``repairs`` passes, ``run``
+    computes the sequential path's result instead (and ``run_checked`` says so).
 
     Attributes:
         lanes: about how many lanes (trials x segments) to fill.
@@ -54,6 +59,8 @@ class Segments(AbstractPath):
         atol_float32, atol_float64: the check's bound on the mean (rad, rad/s) and, relative
             to ``sqrt(P_ii P_jj)``, on the covariance (float32: the accuracy asked of every
             path against the sequential one; float64: 1e-11).
+        repairs: how many repair passes to try when the check fails, before the
+            sequential path (0: none).
     """
 
     name: ClassVar[str] = "segments"
@@ -63,6 +70,7 @@ class Segments(AbstractPath):
     min_segments: int = eqx.field(static=True, default=4)
     atol_float32: float = eqx.field(static=True, default=1e-5)
     atol_float64: float = eqx.field(static=True, default=1e-11)
+    repairs: int = eqx.field(static=True, default=2)
 
     def warmup(self, dtype) -> int:
         return self.warmup_float64 if jnp.dtype(dtype) == jnp.float64 else self.warmup_float32
@@ -133,12 +141,26 @@ class Segments(AbstractPath):
             leaves, tree = jax.tree_util.tree_flatten(own)
             inputs = jax.tree_util.tree_unflatten(
                 tree, [warm(x, f) for x, f in zip(leaves, NO_OP_INPUTS, strict=True)])
-        zT, PT, hT, (z_rows, P_rows, skipped), (zW, PW, hW) = lane_scan(
+        zT, PT, hT, (z_rows, P_rows, skipped), entered = lane_scan(
             params, st, z0, P0, h0, None, None, None, inputs=inputs, snapshot_row=W)
-        z_rows, P_rows, skipped = z_rows[W:], P_rows[W:], skipped[W:]
-        ok = segment_check(_split(zW, B, S), _split(PW, B, S), _split(hW, B, S),
-                           _split(zT, B, S), _split(PT, B, S), _split(hT, B, S),
-                           self.atol(dtype))
+        out = (zT, PT, hT, z_rows[W:], P_rows[W:], skipped[W:])
+        ok = segment_check(entered, out[:3], B, S, self.atol(dtype))
+        first = np.arange(B * S) % S == 0
+        for _ in range(self.repairs if S > 1 else 0):
+            # A repair pass: every segment runs its own rows again, entering where the one
+            # before it ended in the last pass (the first enters as before). A segment
+            # whose predecessor was right is now right; if every segment ends where it
+            # ended last time, every one entered where the sequential filter was.
+            def repair(out, entered):
+                enter = tuple(jnp.where(_lanes_first(first, e), e, jnp.roll(x, 1, axis=0))
+                              for e, x in zip(entered, out[:3]))
+                zT, PT, hT, (z_rows, P_rows, skipped) = lane_scan(
+                    params, st, *enter, None, None, None, inputs=own)
+                new = (zT, PT, hT, z_rows, P_rows, skipped)
+                return new, segment_check(enter, new[:3], B, S, self.atol(dtype)), enter
+
+            out, ok, entered = jax.lax.cond(ok, lambda o, e: (o, ok, e), repair, out, entered)
+        zT, PT, hT, z_rows, P_rows, skipped = out
         angles, std, bias = lane_estimates(st, z_rows, P_rows)
 
         def trials(x):  # (B * S, L, ...) -> (B, T, ...)
@@ -154,12 +176,20 @@ def _split(x, B: int, S: int):
     return x.reshape((B, S) + x.shape[1:])
 
 
-def segment_check(z_in, P_in, hold_in, z_out, P_out, hold_out, atol: float) -> Bool[Array, ""]:
-    """Whether every segment started where the one before it ended: per trial (``B S ...``),
+def _lanes_first(first, x):
+    """``first`` (one flag per lane) shaped to broadcast against ``x`` (lanes first)."""
+    return first.reshape((-1,) + (1,) * (x.ndim - 1))
+
+
+def segment_check(entered, ended, B: int, S: int, atol: float) -> Bool[Array, ""]:
+    """Whether every segment started where the one before it ended: ``entered`` and
+    ``ended`` are the lanes' ``(z, P, hold)`` (``B S`` lanes, a trial's segments in order);
     the entering state of segment ``s >= 1`` against the final state of segment ``s - 1``:
     the mean to ``atol``, the covariance to ``atol sqrt(P_ii P_jj)``, the gyro hold
     exactly."""
-    if z_in.shape[1] < 2:
+    (z_in, P_in, hold_in), (z_out, P_out, hold_out) = (
+        tuple(_split(x, B, S) for x in xs) for xs in (entered, ended))
+    if S < 2:
         return jnp.asarray(True)
     zi, zo = z_in[:, 1:], z_out[:, :-1]
     Pi, Po = P_in[:, 1:], P_out[:, :-1]
