@@ -140,11 +140,13 @@ def test_likelihood_matches_numpy_and_has_gradients(seed):
     robot = random_robot(rng, max_joints=3)
     params = random_params(rng, robot, hall_noise="voltage" if seed % 2 else "angle")
     t, gyro, hall_v = random_recording(rng, robot, T=60)
+    nll = eqx.filter_jit(hall_nll)  # one program a call, not one per operation
     for method in ("kckf", "kf"):
         ref = _reference_nll(joints_of(robot), t, gyro, hall_v, reference_params(params), method)
-        got = float(hall_nll(params, make_series(t, gyro, hall_v), method))
+        got = float(nll(params, make_series(t, gyro, hall_v), method))
         assert got == pytest.approx(ref, rel=1e-9, abs=1e-9), method
-    g = eqx.filter_grad(lambda p: hall_nll(p, make_series(t, gyro, hall_v)))(params)
+    g = eqx.filter_jit(eqx.filter_grad(lambda p: hall_nll(p, make_series(t, gyro, hall_v))))(
+        params)
     leaves = jax.tree_util.tree_leaves(eqx.filter(g, eqx.is_inexact_array))
     assert all(np.isfinite(np.asarray(x)).all() for x in leaves)
     assert np.abs(np.asarray(g.log_sigma_hall_v if seed % 2 else g.log_sigma_hall)).max() > 0
@@ -168,10 +170,12 @@ def test_likelihood_on_lanes_equals_the_step_values_and_gradients():
     trials = [make_series(*random_recording(rng, robot, T=int(T)))
               for T in rng.integers(30, 50, size=8)]
     batch = pad_series(trials)
+    nll = eqx.filter_jit(hall_nll)  # one program a call, not one per operation
     for method in ("kckf", "kf"):
-        seq = float(hall_nll(params, batch, method, lanes=False))
-        assert float(hall_nll(params, batch, method, lanes=True)) == pytest.approx(seq, rel=1e-12)
-    grads = [eqx.filter_grad(lambda p, lanes=lanes: hall_nll(p, batch, lanes=lanes))(params)
+        seq = float(nll(params, batch, method, lanes=False))
+        assert float(nll(params, batch, method, lanes=True)) == pytest.approx(seq, rel=1e-12)
+    grads = [eqx.filter_jit(eqx.filter_grad(lambda p, lanes=lanes: hall_nll(p, batch,
+                                                                            lanes=lanes)))(params)
              for lanes in (False, True)]
     a, b = (jax.tree_util.tree_leaves(eqx.filter(g, eqx.is_inexact_array)) for g in grads)
     for x, y in zip(a, b):
@@ -191,4 +195,4 @@ def test_likelihood_gradient_matches_finite_differences():
         p = eqx.combine(jax.tree_util.tree_unflatten(tree, list(xs)), rest)
         return hall_nll(p, series)
 
-    check_grads(f, leaves, order=1, modes=["rev"], atol=1e-5, rtol=1e-5)
+    check_grads(jax.jit(f), leaves, order=1, modes=["rev"], atol=1e-5, rtol=1e-5)
