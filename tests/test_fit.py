@@ -75,8 +75,8 @@ def test_no_nan_gradient_with_missing_readings_and_truth(small_sessions):
     assert not bool(jnp.all(batch.mask))
     params = initial_params(small_sessions, FitConfig(), jnp.float32)
     for chunk in (None, 37):
-        loss, grads = eqx.filter_value_and_grad(lambda p, c=chunk: loss_fn(p, batch, "kckf", c))(
-            params)
+        loss, grads = eqx.filter_jit(eqx.filter_value_and_grad(
+            lambda p, c=chunk: loss_fn(p, batch, "kckf", c)))(params)
         assert np.isfinite(float(loss))
         for g in jax.tree_util.tree_leaves(grads):
             assert np.all(np.isfinite(np.asarray(g)))
@@ -85,8 +85,8 @@ def test_no_nan_gradient_with_missing_readings_and_truth(small_sessions):
 def test_remat_chunks_give_the_same_loss_and_gradient(small_sessions):
     batch = make_batch(small_sessions, jnp.float64)
     params = initial_params(small_sessions, FitConfig(), jnp.float64)
-    out = [eqx.filter_value_and_grad(lambda p, c=c: loss_fn(p, batch, "kckf", c))(params)
-           for c in (None, 17)]
+    out = [eqx.filter_jit(eqx.filter_value_and_grad(lambda p, c=c: loss_fn(p, batch, "kckf", c)))(
+        params) for c in (None, 17)]
     for loss, grads in out[1:]:
         assert float(loss) == pytest.approx(float(out[0][0]), rel=1e-12)
         for a, b in zip(jax.tree_util.tree_leaves(grads), jax.tree_util.tree_leaves(out[0][1])):
