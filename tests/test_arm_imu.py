@@ -355,6 +355,7 @@ def test_gradient_is_finite_with_missing_readings():
     params = ArmImuParams.from_physical(imu_mount=tr.imu_mount, dtype=jnp.float64)
     exo = np.nan_to_num(np.asarray(series.exo_pos))
 
+    @eqx.filter_jit
     @eqx.filter_grad
     def grad(params):
         _, est = scan_arm_imu(params, series)

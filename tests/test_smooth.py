@@ -91,7 +91,7 @@ def test_smoother_gradient_is_finite_and_checks():
         d = jax.tree_util.tree_unflatten(jax.tree_util.tree_structure(diff), leaves)
         return jnp.mean(smooth(eqx.combine(d, static), series).angles ** 2)
 
-    check_grads(f, jax.tree_util.tree_leaves(diff), order=1, modes=["rev"],
+    check_grads(jax.jit(f), jax.tree_util.tree_leaves(diff), order=1, modes=["rev"],
                 atol=1e-6, rtol=1e-4, eps=1e-6)
 
 
