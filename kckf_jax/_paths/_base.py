@@ -110,8 +110,11 @@ def regular_step(params: Params, series: SensorSeries) -> tuple[float | None, st
         return None, None
     if np.ndim(series.dt) < 1 or np.shape(series.dt)[-1] < 2:
         return None, "fewer than two rows"
-    dev, first, gyro_ok, hall_ok = _regularity(_static(params), series.dt, series.gyro,
-                                               series.hall_v)
+    # Concrete data inside a caller's trace (a jitted loss of the parameters that closes
+    # over its recording) are still checked: evaluated now, not staged into the trace.
+    with jax.ensure_compile_time_eval():
+        dev, first, gyro_ok, hall_ok = _regularity(_static(params), series.dt, series.gyro,
+                                                   series.hall_v)
     dev, first = float(dev), float(first)
     if not (dev <= STEP_TOL_S and first > 0):  # also false for a NaN step
         return None, ("the time step is not constant" if np.ndim(series.dt) == 1 else
