@@ -126,7 +126,7 @@ def test_a_failed_check_is_repaired_else_falls_back_to_the_sequential_path():
     est, ok = checked(short, one[0], "kckf", one[1])
     assert bool(ok)
     close(est.angles[0], ref.angles, 1e-9)
-    # Forty-eight segments of 100 rows: a repair pass does not converge either.
+    # Forty-eight segments of 100 rows: neither repair pass (the default two) converges.
     tiny = Segments(lanes=48, warmup_float64=5, min_segments=2)
     _, est = run_filter(params, series, "kckf", path=tiny)
     assert est.path == "sequential"

@@ -128,11 +128,11 @@ class Segments(AbstractPath):
         own = lane_inputs(params, st, *(x.reshape((B * S, L) + x.shape[2:]) for x in rows))
         z0, P0, h0 = (jnp.repeat(x, S, axis=0) for x in (state.z, state.P, state.gyro_hold))
         inputs = own
+        first = np.arange(B * S) % S == 0  # the lanes that hold a trial's first segment
         if W:
             # Segment s first runs the last W rows of segment s - 1 (W <= L): the same
             # inputs, one lane over, in the same scan; the first segment of a trial runs W
             # no-op rows, which leave its entering state exactly as it was.
-            first = np.arange(B * S) % S == 0
 
             def warm(x, fill):
                 w = jnp.where(first, fill, jnp.roll(x[L - W:], 1, axis=-1))
@@ -145,7 +145,6 @@ class Segments(AbstractPath):
             params, st, z0, P0, h0, None, None, None, inputs=inputs, snapshot_row=W)
         out = (zT, PT, hT, z_rows[W:], P_rows[W:], skipped[W:])
         ok = segment_check(entered, out[:3], B, S, self.atol(dtype))
-        first = np.arange(B * S) % S == 0
         for _ in range(self.repairs if S > 1 else 0):
             # A repair pass: every segment runs its own rows again, entering where the one
             # before it ended in the last pass (the first enters as before). A segment
@@ -159,7 +158,10 @@ class Segments(AbstractPath):
                 new = (zT, PT, hT, z_rows, P_rows, skipped)
                 return new, segment_check(enter, new[:3], B, S, self.atol(dtype)), enter
 
-            out, ok, entered = jax.lax.cond(ok, lambda o, e: (o, ok, e), repair, out, entered)
+            def keep(out, entered):  # the last pass was checked: nothing to repair
+                return out, jnp.asarray(True), entered
+
+            out, ok, entered = jax.lax.cond(ok, keep, repair, out, entered)
         zT, PT, hT, z_rows, P_rows, skipped = out
         angles, std, bias = lane_estimates(st, z_rows, P_rows)
 
