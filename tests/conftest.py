@@ -8,8 +8,22 @@ import os
 import sys
 
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
+# This process compiles at XLA's backend optimisation level 0: most tests compile far more
+# than they run (in-process compiling was 616 of about 1,130 test-seconds), and level 0
+# compiles about 28 % faster. The arithmetic is the same (no fast-math at any level), the
+# tolerances unchanged. The tests' subprocesses (the demo, the CLI, fits, the one-hour run,
+# the notebooks) compile at the default level, as users' programs do: the flag is taken out
+# of the environment once this process's backend has read it.
+_XLA_FLAGS = os.environ.get("XLA_FLAGS")
+os.environ["XLA_FLAGS"] = f"{_XLA_FLAGS or ''} --xla_backend_optimization_level=0".strip()
 
 import jax  # noqa: E402
+
+jax.devices()  # the backend reads XLA_FLAGS here
+if _XLA_FLAGS is None:
+    del os.environ["XLA_FLAGS"]
+else:
+    os.environ["XLA_FLAGS"] = _XLA_FLAGS
 from jaxtyping import install_import_hook  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
