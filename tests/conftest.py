@@ -8,22 +8,17 @@ import os
 import sys
 
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
-# This process compiles at XLA's backend optimisation level 0: most tests compile far more
-# than they run (in-process compiling was 616 of about 1,130 test-seconds), and level 0
-# compiles about 28 % faster. The arithmetic is the same (no fast-math at any level), the
-# tolerances unchanged. The tests' subprocesses (the demo, the CLI, fits, the one-hour run,
-# the notebooks) compile at the default level, as users' programs do: the flag is taken out
-# of the environment once this process's backend has read it.
-_XLA_FLAGS = os.environ.get("XLA_FLAGS")
-os.environ["XLA_FLAGS"] = f"{_XLA_FLAGS or ''} --xla_backend_optimization_level=0".strip()
+# The tests compile at XLA's backend optimisation level 0, in this process and in their
+# subprocesses: most tests compile far more than they run (in-process compiling was 616 of
+# about 1,130 test-seconds), and level 0 compiles about 28 % faster. The arithmetic is the same
+# (no fast-math at any level), the tolerances unchanged. The long runs (the demo, the one-hour
+# run, the notebooks, the recovery fit) compile at the default level, as users' programs do:
+# ``helpers.default_compile_env()``, from the flags the suite was started with.
+# (pytest's workers inherit the controller's environment: the flags it was started with.)
+_XLA_FLAGS = os.environ.setdefault("KCKF_TEST_XLA_FLAGS", os.environ.get("XLA_FLAGS", ""))
+os.environ["XLA_FLAGS"] = f"{_XLA_FLAGS} --xla_backend_optimization_level=0".strip()
 
 import jax  # noqa: E402
-
-jax.devices()  # the backend reads XLA_FLAGS here
-if _XLA_FLAGS is None:
-    del os.environ["XLA_FLAGS"]
-else:
-    os.environ["XLA_FLAGS"] = _XLA_FLAGS
 from jaxtyping import install_import_hook  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
@@ -73,8 +68,10 @@ def demo_results(tmp_path_factory):
     import subprocess
 
     out = tmp_path_factory.mktemp("demo")
+    from helpers import default_compile_env
+
     r = subprocess.run([sys.executable, "-m", "kckf_jax", "demo", "--out", str(out)],
-                       capture_output=True, text=True, timeout=280)
+                       capture_output=True, text=True, timeout=280, env=default_compile_env())
     assert r.returncode == 0, r.stderr[-3000:]
     return json.loads((out / "results.json").read_text()) | {
         "_out": str(out), "_stdout": r.stdout, "_stderr": r.stderr}

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+
 import jax.numpy as jnp
 import numpy as np
 
@@ -83,3 +85,14 @@ def series_of(t, gyro, hall_v, dtype=jnp.float64) -> SensorSeries:
     dt = np.diff(np.asarray(t, np.float64), prepend=t[0])
     return SensorSeries(jnp.asarray(dt, dtype), jnp.asarray(gyro, dtype),
                         jnp.asarray(hall_v, dtype))
+
+
+def default_compile_env() -> dict[str, str]:
+    """The environment for a subprocess that runs far more than it compiles (the demo, the
+    one-hour run, the notebooks, a long fit): XLA's flags as the suite was started, without
+    the optimisation level 0 that conftest.py gives every other process of the tests."""
+    env = dict(os.environ)
+    env["XLA_FLAGS"] = env.pop("KCKF_TEST_XLA_FLAGS", "")
+    if not env["XLA_FLAGS"]:
+        del env["XLA_FLAGS"]
+    return env

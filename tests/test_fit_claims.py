@@ -8,6 +8,8 @@ import os
 import subprocess
 import sys
 
+from helpers import default_compile_env
+
 ROOT = os.path.join(os.path.dirname(__file__), "..")
 
 
@@ -22,7 +24,7 @@ def test_recovery_of_known_parameters(tmp_path):
     out = tmp_path / "out.json"
     r = subprocess.run([sys.executable, os.path.join(ROOT, "training", "recovery.py"),
                         "--config", str(tmp_path / "cfg.json"), "--out", str(out)],
-                       capture_output=True, text=True, timeout=600)
+                       capture_output=True, text=True, timeout=600, env=default_compile_env())
     assert r.returncode == 0, r.stderr[-2000:]
     res = json.loads(out.read_text())
     m = res["heldout_mean_rmse_deg"]

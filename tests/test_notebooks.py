@@ -1,6 +1,6 @@
 """The notebooks run from top to bottom as a user runs them: a fresh Python process, their
-code cells in order in one namespace, compiled at XLA's default optimisation level (this
-process compiles for tests that compile more than they run: conftest.py)."""
+code cells in order in one namespace, compiled at XLA's default optimisation level (the other
+tests compile at level 0: conftest.py)."""
 
 from __future__ import annotations
 
@@ -10,6 +10,7 @@ import sys
 import textwrap
 
 import pytest
+from helpers import default_compile_env
 
 NOTEBOOKS = os.path.join(os.path.dirname(__file__), "..", "notebooks")
 
@@ -31,5 +32,6 @@ RUN_CELLS = textwrap.dedent("""
 def test_notebook_runs(name, tmp_path):
     r = subprocess.run([sys.executable, "-c", RUN_CELLS,
                         os.path.abspath(os.path.join(NOTEBOOKS, name))],
-                       cwd=tmp_path, capture_output=True, text=True, timeout=280)
+                       cwd=tmp_path, capture_output=True, text=True, timeout=280,
+                       env=default_compile_env())
     assert r.returncode == 0, r.stderr[-3000:]

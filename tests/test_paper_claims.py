@@ -12,6 +12,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import default_compile_env
 
 from kckf_jax import (
     Params,
@@ -95,13 +96,12 @@ def test_one_hour_extended_use():
     7 deg while the standard KF drifts away; float32 within 0.05 deg RMSE of float64 over the
     whole hour; the float32 covariance positive definite at every step. In its own process,
     compiled at XLA's default optimisation level as users' programs are (the suite's longest
-    computation; this process compiles for tests that compile more than they run:
-    conftest.py)."""
+    computation; the other tests compile at level 0: conftest.py)."""
     code = ("import json, sys; import jax; jax.config.update('jax_enable_x64', True); "
             f"sys.path.insert(0, {os.path.dirname(__file__)!r}); "
             "from test_paper_claims import _one_hour; print(json.dumps(_one_hour()))")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                       timeout=280)
+                       timeout=280, env=default_compile_env())
     assert r.returncode == 0, r.stderr[-3000:]
     out = json.loads(r.stdout.strip().splitlines()[-1])
     J = out["J"]
