@@ -10,6 +10,7 @@ import shutil
 
 import numpy as np
 import pytest
+from helpers import default_compile_env
 
 from kckf_jax import FitConfig, filter_sessions, fit, initial_params, load_params, read_session
 from kckf_jax.cli import main
@@ -111,11 +112,13 @@ def test_rmse_nll_is_the_rmse_plus_the_weighted_likelihood(session):
 
 
 def test_the_command_keeps_compiled_programs_between_runs(session, tmp_path):
-    """``$KCKF_CACHE_DIR``: the second run of a command loads what the first compiled."""
+    """``$KCKF_CACHE_DIR``: the second run of a command loads what the first compiled (the
+    command as users run it: XLA's default flags, under which its programs take long enough
+    to compile to be kept)."""
     import subprocess
     import sys
 
-    env = {k: v for k, v in os.environ.items() if k != "JAX_COMPILATION_CACHE_DIR"}
+    env = {k: v for k, v in default_compile_env().items() if k != "JAX_COMPILATION_CACHE_DIR"}
     env["KCKF_CACHE_DIR"] = str(tmp_path / "cache")
     argv = [sys.executable, "-m", "kckf_jax", "filter", session, "-o", str(tmp_path / "e.csv"),
             "--quiet"]
