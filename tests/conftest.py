@@ -16,10 +16,12 @@ os.environ.setdefault("JAX_PLATFORMS", "cpu")
 # tolerances unchanged. The long runs (the demo, the one-hour run, the notebooks, the recovery
 # fit, the command's compile cache) get XLA's default flags, as users' programs do:
 # ``helpers.default_compile_env()``, from the flags the suite was started with.
-# (pytest's workers inherit the controller's environment: the flags it was started with.)
+# (pytest's workers inherit the controller's environment: the flags it was started with; a
+# script that sets its own flags adds $KCKF_TEST_COMPILE_FLAGS.)
 _XLA_FLAGS = os.environ.setdefault("KCKF_TEST_XLA_FLAGS", os.environ.get("XLA_FLAGS", ""))
-os.environ["XLA_FLAGS"] = (f"{_XLA_FLAGS} --xla_backend_optimization_level=0"
-                           " --xla_cpu_use_fusion_emitters=false").strip()
+os.environ["KCKF_TEST_COMPILE_FLAGS"] = ("--xla_backend_optimization_level=0"
+                                         " --xla_cpu_use_fusion_emitters=false")
+os.environ["XLA_FLAGS"] = f"{_XLA_FLAGS} {os.environ['KCKF_TEST_COMPILE_FLAGS']}".strip()
 
 import jax  # noqa: E402
 from jaxtyping import install_import_hook  # noqa: E402

@@ -225,7 +225,8 @@ def test_sigterm_keeps_a_checkpoint_and_resume_finishes(tmp_path):
 
 SHARDING_SCRIPT = textwrap.dedent("""
     import os, json
-    os.environ["XLA_FLAGS"] = "--xla_force_host_platform_device_count=4"
+    os.environ["XLA_FLAGS"] = ("--xla_force_host_platform_device_count=4 "
+                               + os.environ.get("KCKF_TEST_COMPILE_FLAGS", ""))
     import jax
     jax.config.update("jax_enable_x64", True)
     import equinox as eqx, jax.numpy as jnp, numpy as np
