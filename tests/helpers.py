@@ -90,8 +90,9 @@ def series_of(t, gyro, hall_v, dtype=jnp.float64) -> SensorSeries:
 def default_compile_env() -> dict[str, str]:
     """The environment for a subprocess that runs far more than it compiles (the demo, the
     one-hour run, the notebooks, a long fit): XLA's flags as the suite was started, without
-    the optimisation level 0 that conftest.py gives every other process of the tests."""
+    the compile flags that conftest.py gives every other process of the tests."""
     env = dict(os.environ)
+    env.pop("KCKF_TEST_COMPILE_FLAGS", None)
     env["XLA_FLAGS"] = env.pop("KCKF_TEST_XLA_FLAGS", "")
     if not env["XLA_FLAGS"]:
         del env["XLA_FLAGS"]

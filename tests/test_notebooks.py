@@ -1,6 +1,6 @@
 """The notebooks run from top to bottom as a user runs them: a fresh Python process, their
-code cells in order in one namespace, compiled at XLA's default optimisation level (the other
-tests compile at level 0: conftest.py)."""
+code cells in order in one namespace, compiled with XLA's default flags (the other tests
+compile with conftest.py's faster-compiling ones)."""
 
 from __future__ import annotations
 

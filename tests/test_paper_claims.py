@@ -95,8 +95,8 @@ def test_one_hour_extended_use():
     """Sec. 4.2 / Fig. 7: movement, then an hour held still. KCKF torso error at the end within
     7 deg while the standard KF drifts away; float32 within 0.05 deg RMSE of float64 over the
     whole hour; the float32 covariance positive definite at every step. In its own process,
-    compiled at XLA's default optimisation level as users' programs are (the suite's longest
-    computation; the other tests compile at level 0: conftest.py)."""
+    compiled with XLA's default flags as users' programs are (the suite's longest computation;
+    the other tests compile with conftest.py's faster-compiling ones)."""
     code = ("import json, sys; import jax; jax.config.update('jax_enable_x64', True); "
             f"sys.path.insert(0, {os.path.dirname(__file__)!r}); "
             "from test_paper_claims import _one_hour; print(json.dumps(_one_hour()))")
