@@ -20,7 +20,8 @@ from .._kalman import cholesky_solve
 from .._kernel import FilterState, SensorSeries, plausible
 from .._model import Structure
 from .._params import Params
-from ._lanes import _Consts, _tri, lane_estimates, lane_scan
+from ._lane_step import _Consts, _tri
+from ._lanes import lane_estimates, lane_scan
 
 
 def lane_rts_step(st: Structure, c: _Consts, z_f, P_f, y_pred, S, ts, skipped, z_s, P_s):

@@ -1,0 +1,127 @@
+"""The lanes filter's reverse pass, written by hand.
+
+XLA's transpose of ``lane_step`` launches many small kernels per row: a scatter-add for each
+of the step's constant gathers, index arithmetic, zero fills and copies (x, y, x, y robot: 154
+fusions and 17 copies in the reverse loop body against 56 fusions in the forward). The
+reverse pass is bound by kernels launched per row, not arithmetic (benchmarks/README.md,
+"where the lanes gradient's time goes"). Here ``lane_scan``'s plain filter is a
+``jax.custom_vjp``: the forward scan keeps each row's state (its outputs) and held gyro
+rates, and the reverse scan runs every row's step again from the state before it and
+applies ``lane_step_adjoint``, which is written out entry by entry like the step.
+
+Exact: the same derivative as the automatic one, to rounding (``tests/test_lanes_adjoint.py``
+checks it against it, and against finite differences, in float64). Only the cotangents that
+are asked for are formed: those of the time steps and of the gyro readings only when they
+are differentiated (``symbolic_zeros``). A skipped row (its update not finite) passes its
+cotangents through, as the forward passes its state through.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.custom_derivatives import CustomVJPPrimal, SymbolicZero
+
+from .._model import Structure
+from ._lane_step import _apply, _Consts, lane_step_adjoint
+
+
+def scan_rows(st: Structure, consts: _Consts, Rm: np.ndarray, body, x0, hold0, rows):
+    """``lax.scan(body, (x0, hold0), rows)`` of ``lane_scan``'s plain body (per row ``(z, P,
+    skipped)``), differentiated by hand. Returns ``((xT, holdT), (z_rows, P_rows,
+    skipped))``; ``Rm`` maps the held gyro rates to the block rates (``lane_scan``'s)."""
+
+    @jax.custom_vjp
+    def run(x0, hold0, rows):
+        (xT, holdT), out = jax.lax.scan(body, (x0, hold0), rows)
+        return (xT, holdT) + out
+
+    def fwd(x0, hold0, rows):
+        def unwrap(tree):
+            return jax.tree_util.tree_map(lambda p: p.value, tree,
+                                          is_leaf=lambda p: isinstance(p, CustomVJPPrimal))
+
+        def perturbed(tree):
+            return any(p.perturbed for p in jax.tree_util.tree_leaves(
+                tree, is_leaf=lambda p: isinstance(p, CustomVJPPrimal)))
+
+        flags = (perturbed(x0), perturbed(hold0), perturbed(rows[0]), perturbed(rows[5]))
+        x0, hold0, rows = unwrap(x0), unwrap(hold0), unwrap(rows)
+
+        def body_h(carry, row):  # the body, keeping every row's tape (and held rates)
+            new, out = body(carry, row, record=True)
+            return new, out + ((new[1],) if flags[2] else ())
+
+        (xT, holdT), out = jax.lax.scan(body_h, (x0, hold0), rows)
+        z_rows, P_rows, skipped = out[:3]
+        res = (x0, hold0, rows) + out
+        return (xT, holdT, z_rows, P_rows, skipped), (res, flags)
+
+    def bwd(saved, cts):
+        (x0, hold0, rows, z_rows, P_rows, skipped, tapes, *holds), flags = saved
+        want_x0, want_hold0, want_ts, want_gyro = flags
+        want_hold = want_hold0 or want_gyro
+        xT_bar, holdT_bar, z_rows_bar, P_rows_bar, _ = cts
+        nz = st.n_z
+        nb = st.angle_index.shape[0]
+        T = z_rows.shape[0]
+
+        def dense(ct, like):
+            return jnp.zeros_like(like) if isinstance(ct, SymbolicZero) else ct
+
+        xT_bar = dense(xT_bar, x0)
+        carry = (xT_bar[:nz], xT_bar[nz:])
+        if want_hold:
+            carry += (dense(holdT_bar, hold0),)
+        per_row = tuple(None if isinstance(ct, SymbolicZero) else ct
+                        for ct in (z_rows_bar, P_rows_bar))
+
+        def before(t, x_rows, first):  # the state entering row t
+            prev = jax.lax.dynamic_index_in_dim(x_rows, jnp.maximum(t - 1, 0), keepdims=False)
+            return jnp.where(t == 0, first, prev)
+
+        def back(carry, row):
+            z_bar, P_bar = carry[:2]
+            t, (ts, noise, hb, rb, vb, g), sk, tape, zr_bar, Pr_bar = row
+            if zr_bar is not None:
+                z_bar = z_bar + zr_bar
+            if Pr_bar is not None:
+                P_bar = P_bar + Pr_bar
+            fin = ~sk
+            tsb = jnp.broadcast_to(ts, (nb,) + ts.shape)
+            inputs = {}
+            if want_ts:  # the step's inputs, for the derivative in its time step
+                hold = before(t, holds[0], hold0)
+                inputs = dict(z=before(t, z_rows, x0[:nz]), P=before(t, P_rows, x0[nz:]),
+                              rates=_apply(Rm, hold).reshape((st.m + 1, nb) + hold.shape[1:]))
+            z_new, P_new, noise_bar, hb_bar, rb_bar, ts_bar, rates_bar = lane_step_adjoint(
+                st, consts, tape, jnp.where(fin, z_bar, 0.0), jnp.where(fin, P_bar, 0.0), tsb,
+                want_ts=want_ts, want_rates=want_hold, **inputs)
+
+            # A skipped row kept its state: its cotangent passes through, and nothing of the
+            # (non-finite) step reaches the inputs.
+            def kept(x):
+                return jnp.where(fin, x, 0.0)
+
+            new = (jnp.where(fin, z_new, z_bar), jnp.where(fin, P_new, P_bar))
+            g_bar = None
+            if want_hold:  # hold' = g where the row is kept and g finite, else hold
+                take = fin & jnp.isfinite(g)
+                g_bar = jnp.where(take, carry[2], 0.0)
+                from_rates = _apply(Rm.T, rates_bar.reshape((-1,) + rates_bar.shape[2:]))
+                new += (jnp.where(take, 0.0, carry[2]) + kept(from_rates),)
+            out = (tuple(kept(x) for x in noise_bar), kept(hb_bar), kept(rb_bar),
+                   kept(ts_bar.sum(axis=0)) if want_ts else None, g_bar)
+            return new, out
+
+        final, (noise_bar, hb_bar, rb_bar, ts_bar, g_bar) = jax.lax.scan(
+            back, carry, (jnp.arange(T), rows, skipped, tapes) + per_row, reverse=True)
+        x0_bar = jnp.concatenate(final[:2]) if want_x0 else None
+        hold0_bar = final[2] if want_hold0 else None
+        rows_bar = (ts_bar, noise_bar, hb_bar, rb_bar, None, g_bar if want_gyro else None)
+        return x0_bar, hold0_bar, rows_bar
+
+    run.defvjp(fwd, bwd, symbolic_zeros=True)
+    xT, holdT, z_rows, P_rows, skipped = run(x0, hold0, rows)
+    return (xT, holdT), (z_rows, P_rows, skipped)
