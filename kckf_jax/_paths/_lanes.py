@@ -226,7 +226,8 @@ class Lanes(AbstractPath):
             differentiate it with JAX's own transpose of the step. By default (``None``) the
             reverse pass is the hand-written one (``_lanes_adjoint``): it keeps every row's
             state and the updates' gains (39 numbers per block and trial for the bench robot,
-            float32: 200 MB for 64 x 10,000 rows) and is 1.6x faster.
+            float32: 200 MB for 64 x 10,000 rows); the fitting step is 2x faster with it
+            (benchmarks/README.md).
     """
 
     name: ClassVar[str] = "lanes"
