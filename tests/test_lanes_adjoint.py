@@ -16,6 +16,7 @@ import pytest
 
 from kckf_jax import Lanes, Params, Robot, SensorSeries, filter_batch, pad_series, simulate
 from kckf_jax._kernel import init_states
+from kckf_jax._likelihood import hall_nll
 
 AUTOMATIC = Lanes(remat_chunk=40)  # chunked checkpoints: JAX's own transpose of the step
 
@@ -132,3 +133,15 @@ def test_float32_gradient_is_as_accurate_as_the_automatic_one():
 
     ours, automatic = error(Lanes()), error(AUTOMATIC)
     assert ours < 5e-3 and ours < 1.5 * automatic
+
+
+@pytest.mark.parametrize("method", ["kckf", "kf"])
+def test_likelihood_gradient_equals_the_sequential_one_float64(method):
+    """The likelihood's innovations (``lane_scan(innovations=True)``) take the same reverse
+    pass, with the cotangents of every innovation and its variance."""
+    params, batch = recorded_like("x,y,x,y", overflow=False)
+    grad = eqx.filter_jit(eqx.filter_value_and_grad(
+        lambda p, lanes: hall_nll(p, batch, method, lanes=lanes)))
+    (v0, g0), (v1, g1) = grad(params, True), grad(params, False)
+    assert float(v0) == pytest.approx(float(v1), rel=1e-11)
+    assert_close(g0, g1, 1e-9)

@@ -155,12 +155,15 @@ def pack_tape(tape: list):
 
 def lane_step_adjoint(st: Structure, consts: _Consts, tape, z_bar, P_bar, ts,
                       z=None, P=None, rates=None, want_ts: bool = False,
-                      want_rates: bool = False):
+                      want_rates: bool = False, nu_bar=None, s_bar=None):
     """The reverse mode of ``lane_step`` (its plain form), written by hand from the step's
     packed ``tape`` (``pack_tape``): every piece transposed in reverse order. Given the
     cotangents ``(z_bar, P_bar)`` of the new ``(z, P)``, returns those of ``z``, ``P``,
     ``noise`` (a tuple of three), ``hb`` and ``rb`` (``m, Nb, B``), and of ``ts`` (``Nb, B``;
     needs the step's inputs ``z, P, rates``) and ``rates`` when asked for (else ``None``).
+    ``nu_bar``, ``s_bar`` (``m, Nb, B``, or ``None``): the cotangents of the step's other
+    outputs with ``innovations``, every joint's innovation ``hb - z_i`` and its variance
+    ``P_ii + rb`` before its update.
 
     Each update ``z' = z + k nu``, ``P' = P - k c^T - c k^T + s k k^T`` (Joseph form, ``c = P
     e_i``, ``s = c_i + r``, ``k = c / s``) is the function ``P - c c^T / s`` of ``(P, r)``, and is
@@ -177,6 +180,15 @@ def lane_step_adjoint(st: Structure, consts: _Consts, tape, z_bar, P_bar, ts,
     for n, index, k, w in reversed(terms[st.n_e:]):
         z_bar, P_bar, hb_bar[index], rb_bar[index] = _update_adjoint(c, n, index, z_bar, P_bar,
                                                                      k, w)
+        if nu_bar is not None:  # nu = hb - z_index
+            one = jnp.asarray(np.eye(n)[index], z_bar.dtype)[:, None, None]
+            z_bar = z_bar - one * nu_bar[index]
+            hb_bar[index] = hb_bar[index] + nu_bar[index]
+        if s_bar is not None:  # s = P_(index, index) + rb
+            hot = np.zeros(len(c.rows[n]))
+            hot[c.index[n][index, index]] = 1.0
+            P_bar = P_bar + jnp.asarray(hot, P_bar.dtype)[:, None, None] * s_bar[index]
+            rb_bar[index] = rb_bar[index] + s_bar[index]
     if st.n_e:
         y_bar = jnp.concatenate([z_bar, jnp.zeros((st.n_e,) + z_bar.shape[1:], z_bar.dtype)])
         S_bar = _apply(c.unrestrict, P_bar)

@@ -146,14 +146,17 @@ def lane_scan(params: Params, st: Structure, z0: Float[Array, "B Nb Nz"],
             i, x_snap, hold_snap = carry[2:]
             take = i == snapshot_row - 1
             new += (i + 1, jnp.where(take, x_new, x_snap), jnp.where(take, hold, hold_snap))
+        states = (x_new[:nz], x_new[nz:], ~fin)
         if innovations:
             nu, s = out[2]
+            if record:  # the reverse pass needs the states as well
+                return new, (nu, s, vb_r & fin) + states + (pack_tape(tape),)
             return new, (nu, s, vb_r & fin)
         if moments:
-            return new, (x_new[:nz], x_new[nz:], ~fin) + out[2]
+            return new, states + out[2]
         if record:
-            return new, (x_new[:nz], x_new[nz:], ~fin, pack_tape(tape))
-        return new, (x_new[:nz], x_new[nz:], ~fin)
+            return new, states + (pack_tape(tape),)
+        return new, states
 
     x0 = jnp.stack([jnp.moveaxis(z0[:, :, i], 0, 1) for i in range(nz)]
                    + [jnp.moveaxis(P0[:, :, i, j], 0, 1) for i, j in tri])
@@ -164,12 +167,12 @@ def lane_scan(params: Params, st: Structure, z0: Float[Array, "B Nb Nz"],
     if remat_chunk:
         # No-op rows pad the last chunk: no time step, every reading missing.
         final, out = chunked_scan(body, carry, rows, remat_chunk, NO_OP_INPUTS)
-    elif innovations or moments or snapshot_row is not None:
+    elif moments or snapshot_row is not None:
         # Each row recomputed under reverse mode (only the carries saved): the transposed
         # body then runs as one piece (64 x 10,000 bench, float32: gradient 3.7 -> 3.0 s).
         final, out = jax.lax.scan(jax.checkpoint(body), carry, rows)
-    else:  # the plain filter: its reverse pass written by hand (_lanes_adjoint)
-        final, out = scan_rows(st, consts, Rm, body, x0, hold, rows)
+    else:  # the filter or its innovations: the reverse pass written by hand (_lanes_adjoint)
+        final, out = scan_rows(st, consts, Rm, body, x0, hold, rows, innovations)
     def states(x, h):  # lanes layout -> (B, Nb, Nz), (B, Nb, Nz, Nz), (B, G)
         z = jnp.moveaxis(x[:nz], (0, 1, 2), (2, 1, 0))
         P = jnp.zeros((z0.shape[0], nb, nz, nz), dtype)

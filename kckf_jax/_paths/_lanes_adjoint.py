@@ -4,10 +4,13 @@ XLA's transpose of ``lane_step`` launches many small kernels per row: a scatter-
 of the step's constant gathers, index arithmetic, zero fills and copies (x, y, x, y robot: 154
 fusions and 17 copies in the reverse loop body against 56 fusions in the forward). The
 reverse pass is bound by kernels launched per row, not arithmetic (benchmarks/README.md,
-"where the lanes gradient's time goes"). Here ``lane_scan``'s plain filter is a
-``jax.custom_vjp``: the forward scan keeps each row's state (its outputs) and held gyro
-rates, and the reverse scan runs every row's step again from the state before it and
-applies ``lane_step_adjoint``, which is written out entry by entry like the step.
+"where the lanes gradient's time goes"). Here ``lane_scan``'s filter is a
+``jax.custom_vjp``: the forward scan keeps each row's state and every scalar update's gain
+(``pack_tape``: 19 numbers a block and row for the bench robot), and the reverse scan, last
+row first, applies ``lane_step_adjoint`` to them (nothing is recomputed), written out entry by
+entry like the step: 46 fusions in the reverse loop body. The
+likelihood's scan (``innovations``) takes it too, with the cotangents of every innovation and
+its variance.
 
 Exact: the same derivative as the automatic one, to rounding (``tests/test_lanes_adjoint.py``
 checks it against it, and against finite differences, in float64). Only the cotangents that
@@ -27,10 +30,12 @@ from .._model import Structure
 from ._lane_step import _apply, _Consts, lane_step_adjoint
 
 
-def scan_rows(st: Structure, consts: _Consts, Rm: np.ndarray, body, x0, hold0, rows):
-    """``lax.scan(body, (x0, hold0), rows)`` of ``lane_scan``'s plain body (per row ``(z, P,
-    skipped)``), differentiated by hand. Returns ``((xT, holdT), (z_rows, P_rows,
-    skipped))``; ``Rm`` maps the held gyro rates to the block rates (``lane_scan``'s)."""
+def scan_rows(st: Structure, consts: _Consts, Rm: np.ndarray, body, x0, hold0, rows,
+              innovations: bool = False):
+    """``lax.scan(body, (x0, hold0), rows)`` of ``lane_scan``'s body, differentiated by hand.
+    Returns ``((xT, holdT), outputs)``, per row ``(z, P, skipped)``, or with ``innovations``
+    ``(nu, s, valid)`` (every joint's fused Hall innovation and its variance, before its
+    update); ``Rm`` maps the held gyro rates to the block rates (``lane_scan``'s)."""
 
     @jax.custom_vjp
     def run(x0, hold0, rows):
@@ -54,15 +59,15 @@ def scan_rows(st: Structure, consts: _Consts, Rm: np.ndarray, body, x0, hold0, r
             return new, out + ((new[1],) if flags[2] else ())
 
         (xT, holdT), out = jax.lax.scan(body_h, (x0, hold0), rows)
-        z_rows, P_rows, skipped = out[:3]
-        res = (x0, hold0, rows) + out
-        return (xT, holdT, z_rows, P_rows, skipped), (res, flags)
+        primal = out[:3]
+        res = (x0, hold0, rows) + (out if not innovations else out[3:])
+        return (xT, holdT) + primal, (res, flags)
 
     def bwd(saved, cts):
         (x0, hold0, rows, z_rows, P_rows, skipped, tapes, *holds), flags = saved
         want_x0, want_hold0, want_ts, want_gyro = flags
         want_hold = want_hold0 or want_gyro
-        xT_bar, holdT_bar, z_rows_bar, P_rows_bar, _ = cts
+        xT_bar, holdT_bar, first_bar, second_bar, _ = cts
         nz = st.n_z
         nb = st.angle_index.shape[0]
         T = z_rows.shape[0]
@@ -74,8 +79,9 @@ def scan_rows(st: Structure, consts: _Consts, Rm: np.ndarray, body, x0, hold0, r
         carry = (xT_bar[:nz], xT_bar[nz:])
         if want_hold:
             carry += (dense(holdT_bar, hold0),)
+        # Per row: the cotangents of (z, P), or with innovations of (nu, s).
         per_row = tuple(None if isinstance(ct, SymbolicZero) else ct
-                        for ct in (z_rows_bar, P_rows_bar))
+                        for ct in (first_bar, second_bar))
 
         def before(t, x_rows, first):  # the state entering row t
             prev = jax.lax.dynamic_index_in_dim(x_rows, jnp.maximum(t - 1, 0), keepdims=False)
@@ -83,11 +89,15 @@ def scan_rows(st: Structure, consts: _Consts, Rm: np.ndarray, body, x0, hold0, r
 
         def back(carry, row):
             z_bar, P_bar = carry[:2]
-            t, (ts, noise, hb, rb, vb, g), sk, tape, zr_bar, Pr_bar = row
-            if zr_bar is not None:
-                z_bar = z_bar + zr_bar
-            if Pr_bar is not None:
-                P_bar = P_bar + Pr_bar
+            t, (ts, noise, hb, rb, vb, g), sk, tape, first_bar, second_bar = row
+            outputs_bar = {}
+            if innovations:
+                outputs_bar = dict(nu_bar=first_bar, s_bar=second_bar)
+            else:
+                if first_bar is not None:
+                    z_bar = z_bar + first_bar
+                if second_bar is not None:
+                    P_bar = P_bar + second_bar
             fin = ~sk
             tsb = jnp.broadcast_to(ts, (nb,) + ts.shape)
             inputs = {}
@@ -97,7 +107,7 @@ def scan_rows(st: Structure, consts: _Consts, Rm: np.ndarray, body, x0, hold0, r
                               rates=_apply(Rm, hold).reshape((st.m + 1, nb) + hold.shape[1:]))
             z_new, P_new, noise_bar, hb_bar, rb_bar, ts_bar, rates_bar = lane_step_adjoint(
                 st, consts, tape, jnp.where(fin, z_bar, 0.0), jnp.where(fin, P_bar, 0.0), tsb,
-                want_ts=want_ts, want_rates=want_hold, **inputs)
+                want_ts=want_ts, want_rates=want_hold, **inputs, **outputs_bar)
 
             # A skipped row kept its state: its cotangent passes through, and nothing of the
             # (non-finite) step reaches the inputs.
