@@ -145,3 +145,6 @@ def test_likelihood_gradient_equals_the_sequential_one_float64(method):
     (v0, g0), (v1, g1) = grad(params, True), grad(params, False)
     assert float(v0) == pytest.approx(float(v1), rel=1e-11)
     assert_close(g0, g1, 1e-9)
+    data = eqx.filter_jit(jax.grad(lambda b, lanes: hall_nll(params, b, method, lanes=lanes)))
+    (d0, d1) = data(batch, True), data(batch, False)  # through the states and held rates
+    assert_close((d0.dt, d0.gyro, d0.hall_v), (d1.dt, d1.gyro, d1.hall_v), 1e-9)

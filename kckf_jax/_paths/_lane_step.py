@@ -178,17 +178,9 @@ def lane_step_adjoint(st: Structure, consts: _Consts, tape, z_bar, P_bar, ts,
         at += n + 1
     hb_bar, rb_bar = [None] * st.m, [None] * st.m
     for n, index, k, w in reversed(terms[st.n_e:]):
-        z_bar, P_bar, hb_bar[index], rb_bar[index] = _update_adjoint(c, n, index, z_bar, P_bar,
-                                                                     k, w)
-        if nu_bar is not None:  # nu = hb - z_index
-            one = jnp.asarray(np.eye(n)[index], z_bar.dtype)[:, None, None]
-            z_bar = z_bar - one * nu_bar[index]
-            hb_bar[index] = hb_bar[index] + nu_bar[index]
-        if s_bar is not None:  # s = P_(index, index) + rb
-            hot = np.zeros(len(c.rows[n]))
-            hot[c.index[n][index, index]] = 1.0
-            P_bar = P_bar + jnp.asarray(hot, P_bar.dtype)[:, None, None] * s_bar[index]
-            rb_bar[index] = rb_bar[index] + s_bar[index]
+        z_bar, P_bar, hb_bar[index], rb_bar[index] = _update_adjoint(
+            c, n, index, z_bar, P_bar, k, w, None if nu_bar is None else nu_bar[index],
+            None if s_bar is None else s_bar[index])
     if st.n_e:
         y_bar = jnp.concatenate([z_bar, jnp.zeros((st.n_e,) + z_bar.shape[1:], z_bar.dtype)])
         S_bar = _apply(c.unrestrict, P_bar)
@@ -212,16 +204,24 @@ def lane_step_adjoint(st: Structure, consts: _Consts, tape, z_bar, P_bar, ts,
             rates_bar)
 
 
-def _update_adjoint(c: _Consts, n: int, index: int, v_bar, P_bar, k, w):
+def _update_adjoint(c: _Consts, n: int, index: int, v_bar, P_bar, k, w, nu_out_bar=None,
+                    s_out_bar=None):
     """The transpose of one scalar update (``_update``, terms from its ``tape``): from the
     cotangents of ``(v', P')``, those of ``(v, P)`` and of the reading ``h`` and its variance
-    ``r`` (the innovation is ``h - v[index]``; ``k = c / s`` with cotangent ``w s v_bar``)."""
+    ``r`` (the innovation is ``h - v[index]``; ``k = c / s`` with cotangent ``w s v_bar``).
+    ``nu_out_bar``, ``s_out_bar``: the cotangents of the innovation and of its variance ``s``
+    themselves, where the step outputs them (``innovations``); they flow whether or not the
+    update was used."""
     iz = c.index[n]
     # P' = P - c c^T / s: c_bar_j = -sum_l W_jl k_l, W the symmetric cotangent (diagonal x 2).
     c_bar = jnp.stack([-_total([(2.0 if j == i else 1.0) * P_bar[iz[j, i]] * k[i]
                                 for i in range(n)]) for j in range(n)])
     nu_bar = _total(k * v_bar)
     s_bar = -0.5 * _total(k * c_bar) - w * nu_bar
+    if nu_out_bar is not None:
+        nu_bar = nu_bar + nu_out_bar
+    if s_out_bar is not None:
+        s_bar = s_bar + s_out_bar
     one = jnp.asarray(np.eye(n)[index], v_bar.dtype)[:, None, None]
     c_bar = c_bar + w * v_bar + one * s_bar  # s = c_index + r
     P_bar = P_bar + _apply(c.column[n, index], c_bar)

@@ -12,7 +12,7 @@ measurement (KCKF), one Joseph-form scalar update per joint with its fused Hall 
 step skipped (state kept) when its update is not finite, a missing gyro reading holding the
 last one. Readings are turned into block inputs beforehand for every row at once (the Hall
 model, the fusion of each pair, the process noise), so the scan carries only the state. The
-plain filter's reverse pass is written by hand (``_lanes_adjoint``).
+reverse pass of the filter and of its innovations is written by hand (``_lanes_adjoint``).
 """
 
 from __future__ import annotations
@@ -149,8 +149,8 @@ def lane_scan(params: Params, st: Structure, z0: Float[Array, "B Nb Nz"],
         states = (x_new[:nz], x_new[nz:], ~fin)
         if innovations:
             nu, s = out[2]
-            if record:  # the reverse pass needs the states as well
-                return new, (nu, s, vb_r & fin) + states + (pack_tape(tape),)
+            if record:  # the reverse pass needs the skipped rows as well
+                return new, (nu, s, vb_r & fin, ~fin, pack_tape(tape))
             return new, (nu, s, vb_r & fin)
         if moments:
             return new, states + out[2]
@@ -228,8 +228,8 @@ class Lanes(AbstractPath):
         remat_chunk: checkpoint the scan in chunks of this many rows under reverse mode, and
             differentiate it with JAX's own transpose of the step. By default (``None``) the
             reverse pass is the hand-written one (``_lanes_adjoint``): it keeps every row's
-            state and the updates' gains (39 numbers per block and trial for the bench robot,
-            float32: 200 MB for 64 x 10,000 rows); the fitting step is 2x faster with it
+            state and the updates' gains (39 numbers per block, row and trial for the bench
+            robot, float32: 200 MB for 64 x 10,000 rows); the fitting step is 2x faster with it
             (benchmarks/README.md).
     """
 

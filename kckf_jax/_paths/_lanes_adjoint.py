@@ -5,8 +5,9 @@ of the step's constant gathers, index arithmetic, zero fills and copies (x, y, x
 fusions and 17 copies in the reverse loop body against 56 fusions in the forward). The
 reverse pass is bound by kernels launched per row, not arithmetic (benchmarks/README.md,
 "where the lanes gradient's time goes"). Here ``lane_scan``'s filter is a
-``jax.custom_vjp``: the forward scan keeps each row's state and every scalar update's gain
-(``pack_tape``: 19 numbers a block and row for the bench robot), and the reverse scan, last
+``jax.custom_vjp``: the forward scan keeps every scalar update's gain (``pack_tape``: 19
+numbers a block and row for the bench robot; the filter outputs its states anyway), and the
+reverse scan, last
 row first, applies ``lane_step_adjoint`` to them (nothing is recomputed), written out entry by
 entry like the step: 46 fusions in the reverse loop body. The
 likelihood's scan (``innovations``) takes it too, with the cotangents of every innovation and
@@ -54,23 +55,24 @@ def scan_rows(st: Structure, consts: _Consts, Rm: np.ndarray, body, x0, hold0, r
         flags = (perturbed(x0), perturbed(hold0), perturbed(rows[0]), perturbed(rows[5]))
         x0, hold0, rows = unwrap(x0), unwrap(hold0), unwrap(rows)
 
-        def body_h(carry, row):  # the body, keeping every row's tape (and held rates)
+        def body_h(carry, row):  # the body, keeping every row's skipped flag and tape, and
+            # for the derivative in the time steps its state and held rates
             new, out = body(carry, row, record=True)
-            return new, out + ((new[1],) if flags[2] else ())
+            return new, out + (new if flags[2] else ())
 
         (xT, holdT), out = jax.lax.scan(body_h, (x0, hold0), rows)
-        primal = out[:3]
-        res = (x0, hold0, rows) + (out if not innovations else out[3:])
-        return (xT, holdT) + primal, (res, flags)
+        at = 3 if innovations else 2  # (nu, s, valid, skipped, ...) or (z, P, skipped, ...)
+        res = (x0, hold0, rows) + out[at:]
+        return (xT, holdT) + out[:3], (res, flags)
 
     def bwd(saved, cts):
-        (x0, hold0, rows, z_rows, P_rows, skipped, tapes, *holds), flags = saved
+        (x0, hold0, rows, skipped, tapes, *states), flags = saved
         want_x0, want_hold0, want_ts, want_gyro = flags
         want_hold = want_hold0 or want_gyro
         xT_bar, holdT_bar, first_bar, second_bar, _ = cts
         nz = st.n_z
         nb = st.angle_index.shape[0]
-        T = z_rows.shape[0]
+        T = skipped.shape[0]
 
         def dense(ct, like):
             return jnp.zeros_like(like) if isinstance(ct, SymbolicZero) else ct
@@ -102,8 +104,8 @@ def scan_rows(st: Structure, consts: _Consts, Rm: np.ndarray, body, x0, hold0, r
             tsb = jnp.broadcast_to(ts, (nb,) + ts.shape)
             inputs = {}
             if want_ts:  # the step's inputs, for the derivative in its time step
-                hold = before(t, holds[0], hold0)
-                inputs = dict(z=before(t, z_rows, x0[:nz]), P=before(t, P_rows, x0[nz:]),
+                x, hold = before(t, states[0], x0), before(t, states[1], hold0)
+                inputs = dict(z=x[:nz], P=x[nz:],
                               rates=_apply(Rm, hold).reshape((st.m + 1, nb) + hold.shape[1:]))
             z_new, P_new, noise_bar, hb_bar, rb_bar, ts_bar, rates_bar = lane_step_adjoint(
                 st, consts, tape, jnp.where(fin, z_bar, 0.0), jnp.where(fin, P_bar, 0.0), tsb,
