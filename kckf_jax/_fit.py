@@ -28,7 +28,7 @@ from ._gaps import GapPolicy
 from ._kernel import SensorSeries, init_state, pad_series
 from ._likelihood import hall_nll
 from ._params import _LEAVES, Params, with_floors
-from ._paths import AbstractPath, Auto, Sequential, Steady, as_path, is_traced
+from ._paths import AbstractPath, Auto, Lanes, Sequential, Steady, as_path, is_traced
 from ._run import choose_path
 from ._session import Session, split_at_gaps
 from ._train import (
@@ -113,6 +113,17 @@ def _origins(sessions: Sequence[Session], gaps: GapPolicy) -> list[Session]:
 REMAT_ABOVE_STEPS = 300_000
 
 
+#: The lanes path for a gradient that is not chunked: from one trial on. Its hand-written
+#: reverse pass (``_paths/_lanes_adjoint``) makes the lanes gradient faster than the sequential
+#: path's at every batch measured, where the filter alone pays only from ``Lanes.min_trials``
+#: (recorded-like bench rows, float32, AMD EPYC, 2026-12-04, one RMSE gradient: 1 x 4,000 rows
+#: 36 ms against 67 ms, 3 x 4,000 53 against 84 ms, 3 x 20,000 0.31 against 0.43 s; more in
+#: docs/fitting.md, "Long sequences"). It keeps every row's
+#: state and gains (about 1.1 kB per trial-step with the rows' inputs), so a gradient the
+#: sequential path would chunk for memory (``auto_chunk``) keeps ``Auto``'s own choice.
+GRADIENT_LANES = Lanes(min_trials=1)
+
+
 def auto_chunk(T: int, trials: int = 1) -> int | None:
     """Remat chunk for a gradient through ``trials`` scans of ``T`` steps: about sqrt(T), or
     none when everything fits comfortably in memory (no recomputation, faster to compile)."""
@@ -186,11 +197,12 @@ class NllLoss(AbstractLoss):
     reading; ``_likelihood.hall_nll``): needs no motion capture."""
 
     method: str = eqx.field(static=True)
+    lanes: bool | None = eqx.field(static=True, default=None)  # hall_nll's
     unit: ClassVar[str] = "nats"
     scale: ClassVar[float] = 1.0
 
     def __call__(self, params, batch):
-        return hall_nll(params, batch.series, self.method)
+        return hall_nll(params, batch.series, self.method, self.lanes)
 
 
 class RmseNllLoss(AbstractLoss):
@@ -215,21 +227,30 @@ LOSSES = ("rmse", "nll", "rmse+nll")
 
 
 def make_loss(kind: str, params: Params, batch: Batch, method: str,
-              remat_chunk: int | None, nll_weight: float = NLL_WEIGHT) -> AbstractLoss:
-    """The training loss ``kind`` (``LOSSES``) on ``batch``."""
+              remat_chunk: int | None, nll_weight: float = NLL_WEIGHT,
+              gradient: bool = True) -> AbstractLoss:
+    """The training loss ``kind`` (``LOSSES``) on ``batch``; ``gradient``: it will be
+    differentiated (the validation loss is not), which decides its path (``rmse_loss``)."""
+    # A gradient that is not chunked takes the lanes scan's innovations at any trial count, as
+    # the RMSE's filter does (``GRADIENT_LANES``); else ``hall_nll``'s own choice.
+    nll = NllLoss(method, True if gradient and remat_chunk is None else None)
     if kind == "nll":
-        return NllLoss(method)
-    rmse = rmse_loss(params, batch, method, remat_chunk)
-    return rmse if kind == "rmse" else RmseNllLoss(rmse, NllLoss(method), nll_weight)
+        return nll
+    rmse = rmse_loss(params, batch, method, remat_chunk, gradient)
+    return rmse if kind == "rmse" else RmseNllLoss(rmse, nll, nll_weight)
 
 
-def rmse_loss(params: Params, batch: Batch, method: str, remat_chunk: int | None) -> RmseLoss:
-    """The training loss on ``batch``, its path chosen on the concrete data and ``params``."""
+def rmse_loss(params: Params, batch: Batch, method: str, remat_chunk: int | None,
+              gradient: bool = True) -> RmseLoss:
+    """The training loss on ``batch``, its path chosen on the concrete data and ``params``:
+    ``Auto``'s, with the lanes path from one trial on for a gradient that is not chunked
+    (``gradient`` and no ``remat_chunk``: ``GRADIENT_LANES``)."""
     fallback = Sequential(remat_chunk)
     # Not the segments path: its warm-ups cut each segment's dependence on the rows before
     # them, which the values' check vouches for but a gradient would not see.
+    lanes = GRADIENT_LANES if gradient and remat_chunk is None else Lanes()
     path = choose_path(params, batch.series, method,
-                       Auto(segments=None, sequential=fallback)).path
+                       Auto(lanes=lanes, segments=None, sequential=fallback)).path
     step_s = float(np.asarray(batch.series.dt)[0, 1]) if isinstance(path, Steady) else None
     return RmseLoss(method, path, step_s, fallback)
 
@@ -446,9 +467,10 @@ def fit(
         raise ValueError(f"initial parameters are for joints {params.robot.spec!r}, the "
                          f"sessions have {sessions[0].robot.spec!r}")
     loss = make_loss(config.loss, params, batch, config.method, chunk, config.nll_weight)
-    # The validation loss is not differentiated: no remat needed.
+    # The validation loss is not differentiated: no remat needed, and the filter's own path.
     val_loss = (None if val is None else
-                make_loss(config.loss, params, val, config.method, None, config.nll_weight))
+                make_loss(config.loss, params, val, config.method, None, config.nll_weight,
+                          gradient=False))
     # Parameters live replicated on every device (committed, so that the first and later
     # steps see identically placed inputs and compile once).
     replicated = jax.sharding.NamedSharding(trial_mesh(), jax.sharding.PartitionSpec())

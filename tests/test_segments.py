@@ -19,6 +19,7 @@ import pytest
 
 from kckf_jax import (
     Auto,
+    Lanes,
     Params,
     Robot,
     Segments,
@@ -168,8 +169,12 @@ def test_auto_takes_segments_for_long_recordings_only():
     assert est.path == "segments"
     assert np.isfinite(np.asarray(est.angles)).all()
     close(est.angles, ref.angles, 1e-5)
-    # The fitting loss is never computed on segments (its Auto offers none).
+    # The fitting loss is never computed on segments (its Auto offers none): its gradient
+    # takes the lanes path from one trial on, unless it is chunked for memory; a validation
+    # loss (not differentiated) takes the filter's own choice.
     batch = Batch(jax.tree_util.tree_map(lambda x: x[None], s32),
                   jnp.zeros((1, 40_000, robot.n_angles), jnp.float32),
                   jnp.ones((1, 40_000, robot.n_angles), bool))
-    assert rmse_loss(p32, batch, "kckf", None).path == Sequential()
+    assert rmse_loss(p32, batch, "kckf", None).path == Lanes(min_trials=1)
+    assert rmse_loss(p32, batch, "kckf", 200).path == Sequential(200)
+    assert rmse_loss(p32, batch, "kckf", None, gradient=False).path == Sequential()
