@@ -117,10 +117,9 @@ REMAT_ABOVE_STEPS = 300_000
 #: reverse pass (``_paths/_lanes_adjoint``) makes the lanes gradient faster than the sequential
 #: path's at every batch measured, where the filter alone pays only from ``Lanes.min_trials``
 #: (recorded-like bench rows, float32, AMD EPYC, 2026-12-04, one RMSE gradient: 1 x 4,000 rows
-#: 36 ms against 67 ms, 3 x 4,000 53 against 84 ms, 3 x 20,000 0.31 against 0.43 s; more in
-#: docs/fitting.md, "Long sequences"). It keeps every row's
-#: state and gains (about 1.1 kB per trial-step with the rows' inputs), so a gradient the
-#: sequential path would chunk for memory (``auto_chunk``) keeps ``Auto``'s own choice.
+#: 36 ms against 67 ms, 3 x 4,000 53 against 84 ms, 3 x 20,000 0.31 against 0.43 s). It keeps
+#: every row's state and gains (about 1.1 kB per trial-step with the rows' inputs), so a
+#: gradient the sequential path would chunk for memory (``auto_chunk``) keeps ``Auto``'s own choice.
 GRADIENT_LANES = Lanes(min_trials=1)
 
 
