@@ -24,11 +24,14 @@ The public API (everything else lives in private modules; docs/architecture.md m
   ``shard_batch``;
 * live filtering and deployment: ``StreamingFilter``, ``PacketParser``, ``Packet``,
   ``STATUSES``, ``low_latency``, ``export_step``;
-* analysis: ``observability_ranks``.
+* analysis: ``observability_ranks``;
+* the one process-wide setting it makes, on import (XLA's CPU while loops compiled as one
+  kernel each): ``cpu_loops`` says what it did.
 
 The other papers' systems are in ``kckf_jax.filters``.
 """
 
+from ._cpu_loops import cpu_loops as cpu_loops
 from ._demo import sample_data_dir as sample_data_dir
 from ._export import export_step as export_step
 from ._fit import FitConfig as FitConfig

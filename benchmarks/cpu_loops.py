@@ -1,0 +1,182 @@
+"""XLA's CPU while loops as one kernel each (the setting kckf-jax makes on import) against
+XLA's default, on every path.
+
+    python benchmarks/cpu_loops.py [--json] [--quick] [--rounds 2] [--cases a,b,...]
+
+Each setting runs in processes of its own (XLA reads its flags once per process), the two
+alternating (off, on, off, on, ...: ``--rounds`` of each); every case reports the compile and
+first call and the median of the calls after it, and the table the medians over rounds.
+"off" is ``KCKF_XLA_LOOPS=0`` (XLA's default: each loop iteration run kernel by kernel);
+"on" is kckf-jax's default (``kk.cpu_loops()``). Data: simulated bench sessions (x, y, x,
+y) as ``kckf simulate`` writes them (jittered stamps, 1 % of the readings missing), the
+``voltage`` noise model of a fit's starting point, float32, except the regular hour (constant
+step, every reading, the ``angle`` noise model: the steady path, whose chunks are matrix
+products that XLA does not fold into one kernel).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+CASES = ("fit_step", "gradient_64", "gradient_3", "lanes_64", "lanes_1024", "sequential_64",
+         "hour", "hour_sequential", "hour_smooth", "smooth_batch_64", "regular_hour")
+
+
+def worker(cases: list[str], quick: bool) -> dict:
+    import equinox as eqx
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    import kckf_jax as kk
+
+    sys.path.insert(0, HERE)
+    import recorded as R
+
+    robot = kk.Robot.from_spec("x,y,x,y")
+    B, T = (8, 2000) if quick else (64, 10_000)
+    L = 36_000 if quick else 360_000
+    out = {"cpu_loops": kk.cpu_loops()._asdict()}
+
+    def timed(name, fn, repeats=5, path=None):
+        t0 = time.perf_counter()
+        first = jax.block_until_ready(fn())
+        first_s = time.perf_counter() - t0
+        times = []
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            jax.block_until_ready(fn())
+            times.append(time.perf_counter() - t0)
+        path = path or getattr(first, "path", None)
+        out[name] = {"first_s": round(first_s, 3), "median_s": round(float(np.median(times)), 4),
+                     "path": path}
+        print(f"  {name}: {out[name]}", file=sys.stderr, flush=True)
+
+    batch_sessions = R.trials(robot, B, T)
+    params = R.params_of(robot, batch_sessions, jnp.float32)
+    series = R.batch_of(batch_sessions, jnp.float32)
+
+    def gradient(sessions):
+        batch = kk.make_batch(sessions, jnp.float32)
+        p = kk.initial_params(sessions, kk.FitConfig(), jnp.float32)
+        path = kk.choose_path(p, batch.series, "kckf", kk.Auto(lanes=kk.Lanes(min_trials=1),
+                                                               segments=None)).path
+        diff, static = eqx.partition(p, eqx.is_array)
+        f = jax.jit(lambda d: eqx.filter_value_and_grad(
+            lambda d: kk.loss_fn(eqx.combine(d, static), batch, "kckf", path=path))(d))
+        return (lambda: f(diff)), path.name
+
+    for case in cases:
+        if case == "fit_step":  # through fit itself: 6 steps, the first compiles
+            stamps = []
+            t0 = time.perf_counter()
+            kk.fit(batch_sessions, (), kk.FitConfig(steps=6), dtype=jnp.float32,
+                   callback=lambda r: stamps.append(time.perf_counter()))
+            out[case] = {"first_s": round(stamps[0] - t0, 3),
+                         "median_s": round(float(np.median(np.diff(stamps))), 4),
+                         "path": "lanes"}
+        elif case == "gradient_64":
+            fn, name = gradient(batch_sessions)
+            timed(case, fn, path=name)
+        elif case == "gradient_3":  # the size of kckf demo's fits
+            fn, name = gradient(R.trials(robot, 3, 4000, seed0=300))
+            timed(case, fn, path=name)
+        elif case == "lanes_64":
+            timed(case, lambda: kk.filter_batch(params, series, "kckf"))
+        elif case == "lanes_1024":
+            big = R.trials(robot, 128 if quick else 1024, 2000)
+            bs = R.batch_of(big, jnp.float32)
+            timed(case, lambda: kk.filter_batch(params, bs, "kckf"), repeats=3)
+        elif case == "sequential_64":
+            timed(case, lambda: kk.filter_batch(params, series, "kckf", path="sequential"),
+                  repeats=3)
+        elif case.startswith("hour"):
+            hour = kk.simulate(robot, "static", seed=3, duration_s=L / 100.0, drop_prob=0.01)
+            hp = kk.initial_params([hour], kk.FitConfig(), jnp.float32)
+            hs = kk.session_series(hour, jnp.float32)
+            if case == "hour":
+                timed(case, lambda: kk.run_filter(hp, hs, "kckf")[1], repeats=3)
+            elif case == "hour_sequential":
+                timed(case, lambda: kk.run_filter(hp, hs, "kckf", path="sequential")[1],
+                      repeats=3)
+            else:
+                timed(case, lambda: kk.smooth(hp, hs, "kckf"), repeats=3)
+        elif case == "smooth_batch_64":
+            timed(case, lambda: kk.smooth_batch(params, series, "kckf"), repeats=3)
+        elif case == "regular_hour":
+            reg = kk.simulate(robot, "static", seed=3, duration_s=L / 100.0)
+            reg.t = np.arange(reg.n_steps) * 0.01
+            rp = kk.Params.paper_defaults(robot, reg.hall_models).astype(jnp.float32)
+            rs = kk.session_series(reg, jnp.float32)
+            timed(case, lambda: kk.run_filter(rp, rs, "kckf")[1], repeats=3)
+        else:
+            raise SystemExit(f"unknown case {case!r}; cases: {', '.join(CASES)}")
+    return out
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--json", action="store_true")
+    ap.add_argument("--quick", action="store_true", help="small sizes, for a smoke test")
+    ap.add_argument("--rounds", type=int, default=2)
+    ap.add_argument("--cases", default=",".join(CASES))
+    ap.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    cases = args.cases.split(",")
+    if args.worker:
+        print(json.dumps(worker(cases, args.quick)))
+        return
+    runs = {"off": [], "on": []}
+    for r in range(args.rounds):
+        for setting in ("off", "on"):
+            env = dict(os.environ)
+            env.pop("KCKF_XLA_LOOPS", None)
+            if setting == "off":
+                env["KCKF_XLA_LOOPS"] = "0"
+            print(f"round {r + 1}, {setting}", file=sys.stderr, flush=True)
+            cmd = [sys.executable, os.path.abspath(__file__), "--worker", "--cases", args.cases]
+            got = subprocess.run(cmd + (["--quick"] if args.quick else []), env=env,
+                                 check=True, capture_output=True, text=True)
+            runs[setting].append(json.loads(got.stdout))
+    import numpy as np
+
+    sys.path.insert(0, HERE)
+    from _machine import machine
+
+    table = {}
+    for case in cases:
+        row = {}
+        for setting in ("off", "on"):
+            r = [run[case] for run in runs[setting]]
+            row[setting] = {"median_s": round(float(np.median([x["median_s"] for x in r])), 4),
+                            "first_s": round(float(np.median([x["first_s"] for x in r])), 2),
+                            "runs_s": [x["median_s"] for x in r], "path": r[0]["path"]}
+        row["ratio_on_over_off"] = round(row["on"]["median_s"] / row["off"]["median_s"], 3)
+        table[case] = row
+    doc = {"benchmark": "cpu_loops", "machine": machine(), "date": time.strftime("%Y-%m-%d"),
+           "rounds": args.rounds, "quick": args.quick,
+           "settings": {s: runs[s][0]["cpu_loops"] for s in runs}, "cases": table}
+    try:
+        doc["commit"] = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=HERE,
+                                       capture_output=True, text=True).stdout.strip()
+    except OSError:
+        pass
+    if args.json:
+        print(json.dumps(doc, indent=2))
+        return
+    print(f"{'case':18s} {'path':>22s} {'off (s)':>9s} {'on (s)':>9s} {'on/off':>7s} "
+          f"{'first off':>9s} {'first on':>9s}")
+    for case, row in table.items():
+        print(f"{case:18s} {str(row['on']['path']):>22s} {row['off']['median_s']:9.4f} "
+              f"{row['on']['median_s']:9.4f} {row['ratio_on_over_off']:7.2f} "
+              f"{row['off']['first_s']:9.2f} {row['on']['first_s']:9.2f}")
+
+
+if __name__ == "__main__":
+    main()
