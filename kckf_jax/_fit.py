@@ -115,12 +115,22 @@ REMAT_ABOVE_STEPS = 300_000
 
 #: The lanes path for a gradient that is not chunked: from one trial on. Its hand-written
 #: reverse pass (``_paths/_lanes_adjoint``) makes the lanes gradient faster than the sequential
-#: path's at every batch measured, where the filter alone pays only from ``Lanes.min_trials``
-#: (recorded-like bench rows, float32, AMD EPYC, 2026-12-04, one RMSE gradient: 1 x 4,000 rows
-#: 36 ms against 67 ms, 3 x 4,000 53 against 84 ms, 3 x 20,000 0.31 against 0.43 s). It keeps
-#: every row's state and gains (about 1.1 kB per trial-step with the rows' inputs), so a
-#: gradient the sequential path would chunk for memory (``auto_chunk``) keeps ``Auto``'s own choice.
+#: path's at every batch measured, where a filter run once is done sooner on the sequential
+#: path below ``Lanes.min_trials`` (the lanes program compiles longer; docs/performance.md).
+#: Recorded-like bench rows, float32, AMD EPYC, 2026-12-04, one RMSE value and gradient, each
+#: loop one kernel (``_cpu_loops``): 1 x 5,000 rows 12 ms against 65 ms, 8 x 5,000 63 against
+#: 151 ms (with every kernel launched apart: 1 x 4,000 36 against 67 ms, 3 x 4,000 53 against
+#: 84 ms). It keeps every row's state and gains (about 1.1 kB per trial-step with the rows'
+#: inputs), so a gradient the sequential path would chunk for memory (``auto_chunk``) keeps
+#: ``Auto``'s own choice.
 GRADIENT_LANES = Lanes(min_trials=1)
+
+
+def lanes_at_any_count(gradient: bool, remat_chunk: int | None) -> bool:
+    """Whether a training loss takes the lanes path from one trial on (``GRADIENT_LANES``,
+    for the RMSE's filter and the likelihood's innovations alike): a gradient (the validation
+    loss is not one) that is not chunked for memory."""
+    return gradient and remat_chunk is None
 
 
 def auto_chunk(T: int, trials: int = 1) -> int | None:
@@ -230,9 +240,8 @@ def make_loss(kind: str, params: Params, batch: Batch, method: str,
               gradient: bool = True) -> AbstractLoss:
     """The training loss ``kind`` (``LOSSES``) on ``batch``; ``gradient``: it will be
     differentiated (the validation loss is not), which decides its path (``rmse_loss``)."""
-    # A gradient that is not chunked takes the lanes scan's innovations at any trial count, as
-    # the RMSE's filter does (``GRADIENT_LANES``); else ``hall_nll``'s own choice.
-    nll = NllLoss(method, True if gradient and remat_chunk is None else None)
+    # Else hall_nll's own choice of the innovations' scan.
+    nll = NllLoss(method, True if lanes_at_any_count(gradient, remat_chunk) else None)
     if kind == "nll":
         return nll
     rmse = rmse_loss(params, batch, method, remat_chunk, gradient)
@@ -243,11 +252,11 @@ def rmse_loss(params: Params, batch: Batch, method: str, remat_chunk: int | None
               gradient: bool = True) -> RmseLoss:
     """The training loss on ``batch``, its path chosen on the concrete data and ``params``:
     ``Auto``'s, with the lanes path from one trial on for a gradient that is not chunked
-    (``gradient`` and no ``remat_chunk``: ``GRADIENT_LANES``)."""
+    (``lanes_at_any_count``)."""
     fallback = Sequential(remat_chunk)
     # Not the segments path: its warm-ups cut each segment's dependence on the rows before
     # them, which the values' check vouches for but a gradient would not see.
-    lanes = GRADIENT_LANES if gradient and remat_chunk is None else Lanes()
+    lanes = GRADIENT_LANES if lanes_at_any_count(gradient, remat_chunk) else Lanes()
     path = choose_path(params, batch.series, method,
                        Auto(lanes=lanes, segments=None, sequential=fallback)).path
     step_s = float(np.asarray(batch.series.dt)[0, 1]) if isinstance(path, Steady) else None
