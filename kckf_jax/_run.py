@@ -89,8 +89,9 @@ def run_filter(
     if state is None:
         state = init_state(params, method)
     if isinstance(chosen, Segments) and not is_traced(params, series, state):
-        final, est, ok = _run_one_checked(chosen, params, series, method, state)
-        if bool(ok):
+        final, est, ok = _segments_on_host(
+            chosen, lambda last: _run_one_pass(chosen, params, series, method, state, last))
+        if ok:
             return final, dataclasses.replace(est, path=chosen.name,
                                               names=params.robot.angle_names)
         chosen = Sequential()  # the segments' check failed, and so did its repairs
@@ -111,10 +112,23 @@ def _run_one(path: AbstractPath, params, series, method, state):
     return _first(path.run(params, _one(series), method, _one(state)))
 
 
+def _segments_on_host(path: Segments, run_pass) -> tuple[FilterState, Estimate, bool]:
+    """The segments' first pass, then repair passes while the check fails, each pass a
+    program of its own (``run_pass(last)``, ``last`` the pass before or ``None``): a recording
+    whose check passes compiles no repair pass, a failed one compiles one and runs it up to
+    ``path.repairs`` times. Returns the last pass's final state, estimates and check."""
+    final, est, last = run_pass(None)
+    for _ in range(path.repairs):
+        if bool(last.ok):
+            break
+        final, est, last = run_pass(last)
+    return final, est, bool(last.ok)
+
+
 @eqx.filter_jit
-def _run_one_checked(path: Segments, params, series, method, state):
-    final, est, ok = path.run_checked(params, _one(series), method, _one(state))
-    return _first((final, est)) + (ok,)
+def _run_one_pass(path: Segments, params, series, method, state, last):
+    final, est, this = path.run_pass(params, _one(series), method, _one(state), last)
+    return _first((final, est)) + (this._replace(rows=None),)
 
 
 def filter_batch(params: Params, series: SensorSeries, method: str = "kckf",
@@ -132,8 +146,9 @@ def filter_batch(params: Params, series: SensorSeries, method: str = "kckf",
     check_method(method)
     chosen = choose_path(params, series, method, path).path
     if isinstance(chosen, Segments) and not is_traced(params, series):
-        est, ok = _run_batch_checked(chosen, params, series, method)
-        if bool(ok):
+        _, est, ok = _segments_on_host(
+            chosen, lambda last: _run_batch_pass(chosen, params, series, method, last))
+        if ok:
             return dataclasses.replace(est, path=chosen.name, names=params.robot.angle_names)
         chosen = Sequential()  # the segments' check failed, and so did its repairs
     est = _run_batch(chosen, params, series, method)
@@ -147,10 +162,10 @@ def _run_batch(path: AbstractPath, params, series, method):
 
 
 @eqx.filter_jit
-def _run_batch_checked(path: Segments, params, series, method):
+def _run_batch_pass(path: Segments, params, series, method, last):
     state = init_states(params, method, jnp.shape(series.dt)[0])
-    _, est, ok = path.run_checked(params, series, method, state)
-    return est, ok
+    final, est, this = path.run_pass(params, series, method, state, last)
+    return final, est, this._replace(rows=None)
 
 
 # ---------------------------------------------------------------------------- sessions

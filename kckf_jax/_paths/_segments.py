@@ -1,7 +1,8 @@
 """The segments path: one long recording cut into segments that run side by side as lanes.
 
 A single recording leaves the lanes layout (``_lanes.py``) nothing to put in its lanes, and a
-sequential scan is bound by XLA's cost per loop iteration (about 1 to 2 us per row here). But
+sequential scan is bound by XLA's cost per loop iteration (about 0.9 us per row here with each
+loop one kernel, ``_cpu_loops``; 2.6 us without; on a GPU far more). But
 the filter forgets where it started: from the initial state, its estimates and covariance
 meet those of a filter that has run from the first row within a few thousand rows (measured
 on recorded-like bench sessions, float64: the state within 4e-8 after 4,096 rows and 4e-14
@@ -21,12 +22,14 @@ and the pass is checked the same way (every segment must end where it ended in t
 before, so that the next one entered right). One pass costs ``T / S`` iterations, about two
 thirds of the first (``T / S + warmup``), where the sequential path costs ``T``. Only where
 the repairs fail too is the recording filtered by the sequential path, and ``run_filter`` and
-``filter_batch`` say so (``Estimate.path`` is ``"sequential"``).
+``filter_batch`` say so (``Estimate.path`` is ``"sequential"``). They run each pass as a
+program of its own (``Segments.run_pass``), so that a recording whose check passes compiles
+no repair; under a caller's ``jit``, ``Segments.run`` has every pass in one program.
 """
 
 from __future__ import annotations
 
-from typing import ClassVar
+from typing import ClassVar, NamedTuple
 
 import equinox as eqx
 import jax
@@ -109,7 +112,30 @@ class Segments(AbstractPath):
     def run_checked(self, params: Params, series: SensorSeries, method: str,
                     state: FilterState) -> tuple[FilterState, Estimate, Bool[Array, ""]]:
         """The segmented filter and whether every segment's check passed (if not, the
-        estimates are not the sequential path's: use ``run``, which falls back)."""
+        estimates are not the sequential path's: use ``run``, which falls back). The first
+        pass and every repair pass (each in a ``lax.cond``) in one program, for a caller's
+        ``jit``; ``run_filter`` and ``filter_batch`` run ``run_pass`` on the host instead,
+        each pass a program of its own, so that a recording whose check passes compiles no
+        repair (one hour: 2.9 s of compiling -> about 1 s)."""
+        last = self.run_pass(params, series, method, state)[2]
+        B, T = jnp.shape(series.dt)
+        for _ in range(self.repairs if self.segments_of(B, T, state.z.dtype) > 1 else 0):
+            last = jax.lax.cond(last.ok, lambda p: p,
+                                lambda p: self.run_pass(params, series, method, state, p)[2],
+                                last)
+        return self.run_pass(params, series, method, state, last, rerun=False)[:2] + (last.ok,)
+
+    def run_pass(self, params: Params, series: SensorSeries, method: str, state: FilterState,
+                 last: SegmentPass | None = None, rerun: bool = True
+                 ) -> tuple[FilterState, Estimate, SegmentPass]:
+        """One pass over the segments: the first (``last`` is ``None``: every segment warmed
+        up from the entering state) or a repair (every segment's own rows again, entering
+        where the one before it ended in ``last``: the first enters as before). A segment
+        whose predecessor was right is now right; if every segment ends where it ended in
+        ``last``, every one entered where the sequential filter was. Returns the estimates of
+        the pass, its final state and the ``SegmentPass`` a repair would start from, its
+        check in ``ok``. ``rerun=False``: no pass, the estimates of ``last`` (whose rows it
+        keeps)."""
         st = structure(params.robot, method)
         dtype = state.z.dtype
         series = plausible(params, jax.tree_util.tree_map(
@@ -123,46 +149,41 @@ class Segments(AbstractPath):
             return jnp.pad(x, [(0, 0), (0, S * L - T)] + [(0, 0)] * (x.ndim - 2),
                            constant_values=fill)
 
-        fills = (0.0, jnp.nan, jnp.nan)
-        rows = [padded(x, f) for x, f in zip((series.dt, series.gyro, series.hall_v), fills)]
-        own = lane_inputs(params, st, *(x.reshape((B * S, L) + x.shape[2:]) for x in rows))
-        z0, P0, h0 = (jnp.repeat(x, S, axis=0) for x in (state.z, state.P, state.gyro_hold))
-        inputs = own
-        first = np.arange(B * S) % S == 0  # the lanes that hold a trial's first segment
-        if W:
-            # Segment s first runs the last W rows of segment s - 1 (W <= L): the same
-            # inputs, one lane over, in the same scan; the first segment of a trial runs W
-            # no-op rows, which leave its entering state exactly as it was.
+        if not rerun:
+            this = last
+        else:
+            fills = (0.0, jnp.nan, jnp.nan)
+            rows = [padded(x, f) for x, f in zip((series.dt, series.gyro, series.hall_v), fills)]
+            own = lane_inputs(params, st, *(x.reshape((B * S, L) + x.shape[2:]) for x in rows))
+            first = np.arange(B * S) % S == 0  # the lanes that hold a trial's first segment
+            if last is None:
+                starts = tuple(jnp.repeat(x, S, axis=0)
+                               for x in (state.z, state.P, state.gyro_hold))
+                inputs = own
+                if W:
+                    # Segment s first runs the last W rows of segment s - 1 (W <= L): the
+                    # same inputs, one lane over, in the same scan; the first segment of a
+                    # trial runs W no-op rows, which leave its entering state exactly as it
+                    # was.
+                    def warm(x, fill):
+                        w = jnp.where(first, fill, jnp.roll(x[L - W:], 1, axis=-1))
+                        return jnp.concatenate([w, x])
 
-            def warm(x, fill):
-                w = jnp.where(first, fill, jnp.roll(x[L - W:], 1, axis=-1))
-                return jnp.concatenate([w, x])
-
-            leaves, tree = jax.tree_util.tree_flatten(own)
-            inputs = jax.tree_util.tree_unflatten(
-                tree, [warm(x, f) for x, f in zip(leaves, NO_OP_INPUTS, strict=True)])
-        zT, PT, hT, (z_rows, P_rows, skipped), entered = lane_scan(
-            params, st, z0, P0, h0, None, None, None, inputs=inputs, snapshot_row=W)
-        out = (zT, PT, hT, z_rows[W:], P_rows[W:], skipped[W:])
-        ok = segment_check(entered, out[:3], B, S, self.atol(dtype))
-        for _ in range(self.repairs if S > 1 else 0):
-            # A repair pass: every segment runs its own rows again, entering where the one
-            # before it ended in the last pass (the first enters as before). A segment
-            # whose predecessor was right is now right; if every segment ends where it
-            # ended last time, every one entered where the sequential filter was.
-            def repair(out, entered):
-                enter = tuple(jnp.where(_lanes_first(first, e), e, jnp.roll(x, 1, axis=0))
-                              for e, x in zip(entered, out[:3]))
-                zT, PT, hT, (z_rows, P_rows, skipped) = lane_scan(
-                    params, st, *enter, None, None, None, inputs=own)
-                new = (zT, PT, hT, z_rows, P_rows, skipped)
-                return new, segment_check(enter, new[:3], B, S, self.atol(dtype)), enter
-
-            def keep(out, entered):  # the last pass was checked: nothing to repair
-                return out, jnp.asarray(True), entered
-
-            out, ok, entered = jax.lax.cond(ok, keep, repair, out, entered)
-        zT, PT, hT, z_rows, P_rows, skipped = out
+                    leaves, tree = jax.tree_util.tree_flatten(own)
+                    inputs = jax.tree_util.tree_unflatten(
+                        tree, [warm(x, f) for x, f in zip(leaves, NO_OP_INPUTS, strict=True)])
+                zT, PT, hT, (z_rows, P_rows, skipped), entered = lane_scan(
+                    params, st, *starts, None, None, None, inputs=inputs, snapshot_row=W)
+                rows_out = (z_rows[W:], P_rows[W:], skipped[W:])
+            else:
+                entered = tuple(jnp.where(_lanes_first(first, e), e, jnp.roll(x, 1, axis=0))
+                                for e, x in zip(last.entered, last.ended))
+                zT, PT, hT, rows_out = lane_scan(params, st, *entered, None, None, None,
+                                                 inputs=own)
+            ended = (zT, PT, hT)
+            this = SegmentPass(ended, entered, rows_out,
+                               segment_check(entered, ended, B, S, self.atol(dtype)))
+        z_rows, P_rows, skipped = this.rows
         angles, std, bias = lane_estimates(st, z_rows, P_rows)
 
         def trials(x):  # (B * S, L, ...) -> (B, T, ...)
@@ -170,8 +191,27 @@ class Segments(AbstractPath):
 
         est = Estimate(trials(angles), trials(std), trials(bias),
                        trials(jnp.moveaxis(skipped, 0, 1)))
-        final = FilterState(*(_split(x, B, S)[:, -1] for x in (zT, PT, hT)))
-        return final, est, ok
+        final = FilterState(*(_split(x, B, S)[:, -1] for x in this.ended))
+        return final, est, this
+
+
+class SegmentPass(NamedTuple):
+    """One pass of ``Segments.run_pass`` over every lane (trials x segments): what a repair
+    pass starts from and what the estimates are read from.
+
+    Attributes:
+        ended: every lane's ``(z, P, hold)`` after its own rows (lanes first).
+        entered: every lane's ``(z, P, hold)`` entering its own rows.
+        rows: per row ``(z, P upper triangle, skipped)`` (``lane_scan``'s), or ``None`` where
+            a caller no longer needs them.
+        ok: whether every segment entered where the one before it ended
+            (``segment_check``).
+    """
+
+    ended: tuple
+    entered: tuple
+    rows: tuple | None
+    ok: Bool[Array, ""]
 
 
 def _split(x, B: int, S: int):
