@@ -2,12 +2,16 @@
 XLA's default, on every path.
 
     python benchmarks/cpu_loops.py [--json] [--quick] [--rounds 2] [--cases a,b,...]
+                                   [--bounds BYTES,...]
 
-Each setting runs in processes of its own (XLA reads its flags once per process), the two
-alternating (off, on, off, on, ...: ``--rounds`` of each); every case reports the compile and
-first call and the median of the calls after it, and the table the medians over rounds.
-"off" is ``KCKF_XLA_LOOPS=0`` (XLA's default: each loop iteration run kernel by kernel);
-"on" is kckf-jax's default (``kk.cpu_loops()``). Data: simulated bench sessions (x, y, x,
+Each setting runs in processes of its own (XLA reads its flags once per process), the
+settings alternating (off, on, off, on, ...: ``--rounds`` of each); every case reports the
+compile and first call and the median of the calls after it, and the table the medians over
+rounds. "off" is ``KCKF_XLA_LOOPS=0`` (XLA's default: each loop iteration run kernel by
+kernel); "on" is kckf-jax's default (``kk.cpu_loops()``); ``--bounds`` adds a setting per
+bound (``KCKF_XLA_LOOPS=<bytes>``: loops touching more per iteration stay kernel by kernel),
+as for the choice of the default (``--cases lanes_1024,lanes_4096 --bounds
+1048576,16777216``). Data: simulated bench sessions (x, y, x,
 y) as ``kckf simulate`` writes them (jittered stamps, 1 % of the readings missing), the
 ``voltage`` noise model of a fit's starting point, float32, except the regular hour (constant
 step, every reading, the ``angle`` noise model: the steady path, whose chunks are matrix
@@ -26,6 +30,7 @@ import time
 HERE = os.path.dirname(os.path.abspath(__file__))
 CASES = ("fit_step", "gradient_64", "gradient_3", "lanes_64", "lanes_1024", "sequential_64",
          "hour", "hour_sequential", "hour_smooth", "smooth_batch_64", "regular_hour")
+MORE = ("lanes_4096",)  # run only when named
 
 
 def worker(cases: list[str], quick: bool) -> dict:
@@ -90,10 +95,11 @@ def worker(cases: list[str], quick: bool) -> dict:
             timed(case, fn, path=name)
         elif case == "lanes_64":
             timed(case, lambda: kk.filter_batch(params, series, "kckf"))
-        elif case == "lanes_1024":
-            big = R.trials(robot, 128 if quick else 1024, 2000)
+        elif case in ("lanes_1024", "lanes_4096"):
+            n, rows = (1024, 2000) if case == "lanes_1024" else (4096, 500)
+            big = R.trials(robot, n // 8 if quick else n, rows)
             bs = R.batch_of(big, jnp.float32)
-            timed(case, lambda: kk.filter_batch(params, bs, "kckf"), repeats=3)
+            timed(case, lambda bs=bs: kk.filter_batch(params, bs, "kckf"), repeats=3)
         elif case == "sequential_64":
             timed(case, lambda: kk.filter_batch(params, series, "kckf", path="sequential"),
                   repeats=3)
@@ -119,7 +125,7 @@ def worker(cases: list[str], quick: bool) -> dict:
             rs = kk.session_series(reg, jnp.float32)
             timed(case, lambda: kk.run_filter(rp, rs, "kckf")[1], repeats=3)
         else:
-            raise SystemExit(f"unknown case {case!r}; cases: {', '.join(CASES)}")
+            raise SystemExit(f"unknown case {case!r}; cases: {', '.join(CASES + MORE)}")
     return out
 
 
@@ -129,19 +135,21 @@ def main():
     ap.add_argument("--quick", action="store_true", help="small sizes, for a smoke test")
     ap.add_argument("--rounds", type=int, default=2)
     ap.add_argument("--cases", default=",".join(CASES))
+    ap.add_argument("--bounds", default="", help="more settings: bounds in bytes, comma-separated")
     ap.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args()
     cases = args.cases.split(",")
     if args.worker:
         print(json.dumps(worker(cases, args.quick)))
         return
-    runs = {"off": [], "on": []}
+    settings = ["off", "on"] + [b for b in args.bounds.split(",") if b]
+    runs = {s: [] for s in settings}
     for r in range(args.rounds):
-        for setting in ("off", "on"):
+        for setting in settings:
             env = dict(os.environ)
             env.pop("KCKF_XLA_LOOPS", None)
-            if setting == "off":
-                env["KCKF_XLA_LOOPS"] = "0"
+            if setting != "on":
+                env["KCKF_XLA_LOOPS"] = "0" if setting == "off" else setting
             print(f"round {r + 1}, {setting}", file=sys.stderr, flush=True)
             cmd = [sys.executable, os.path.abspath(__file__), "--worker", "--cases", args.cases]
             got = subprocess.run(cmd + (["--quick"] if args.quick else []), env=env,
@@ -155,7 +163,7 @@ def main():
     table = {}
     for case in cases:
         row = {}
-        for setting in ("off", "on"):
+        for setting in settings:
             r = [run[case] for run in runs[setting]]
             row[setting] = {"median_s": round(float(np.median([x["median_s"] for x in r])), 4),
                             "first_s": round(float(np.median([x["first_s"] for x in r])), 2),
@@ -173,12 +181,13 @@ def main():
     if args.json:
         print(json.dumps(doc, indent=2))
         return
-    print(f"{'case':18s} {'path':>22s} {'off (s)':>9s} {'on (s)':>9s} {'on/off':>7s} "
-          f"{'first off':>9s} {'first on':>9s}")
+    print(f"{'case':18s} {'path':>16s} " + " ".join(f"{s + ' (s)':>14s}" for s in settings)
+          + f" {'on/off':>7s} {'first off':>9s} {'first on':>9s}")
     for case, row in table.items():
-        print(f"{case:18s} {str(row['on']['path']):>22s} {row['off']['median_s']:9.4f} "
-              f"{row['on']['median_s']:9.4f} {row['ratio_on_over_off']:7.2f} "
-              f"{row['off']['first_s']:9.2f} {row['on']['first_s']:9.2f}")
+        print(f"{case:18s} {str(row['on']['path']):>16s} "
+              + " ".join(f"{row[s]['median_s']:14.4f}" for s in settings)
+              + f" {row['ratio_on_over_off']:7.2f} {row['off']['first_s']:9.2f}"
+              f" {row['on']['first_s']:9.2f}")
 
 
 if __name__ == "__main__":
