@@ -14,11 +14,12 @@ when it is imported, before JAX's backend has started, since XLA reads its flags
 Loops with matrix products (the steady path's chunks) are not taken and run as before.
 
 Measured (AMD EPYC, 2 cores, jax 0.10.2, float32, recorded-like bench rows; both settings
-in one run, medians; ``python benchmarks/cpu_loops.py``, figures in benchmarks/README.md):
-one fitting step on 64 x 10,000 rows 1.30 -> 0.56 s, the lanes filter of 1,024 trials 2.4 ->
-0.84 s, the smoother on one hour 4.3 -> 1.0 s, the sequential filter on one hour 1.06 -> 0.33
-s; the vmapped sequential step of 64 trials, which loses the two cores' split of its larger
-kernels, about 1.04x slower (``Auto`` gives 64 trials to the lanes path).
+alternating in processes of their own, medians; ``python benchmarks/cpu_loops.py``, figures
+in benchmarks/README.md): one fitting step on 64 x 10,000 rows 1.15 -> 0.52 s, the lanes
+filter of 1,024 trials x 2,000 rows 2.06 -> 0.84 s, the smoother on one hour 4.2 -> 1.1 s, the
+sequential filter on one hour 0.93 -> 0.32 s; the vmapped sequential step of 64 trials, whose
+larger kernels no longer share two threads, 1.08x slower (``Auto`` gives 64 trials to the
+lanes path).
 
 The setting is the process's: any other JAX program in it compiles its loops this way too, and
 subprocesses inherit ``XLA_FLAGS``. ``KCKF_XLA_LOOPS=0`` in the environment leaves XLA's
@@ -39,9 +40,10 @@ from jax._src import xla_bridge  # JAX's record of started backends: no public A
 
 #: XLA's option: loops whose one iteration touches fewer bytes are compiled as one kernel.
 OPTION = "xla_cpu_small_while_loop_byte_threshold"
-#: The bound kckf-jax sets: 1 TiB, every loop the pass can take. Bounds of 1 MiB and 16 MiB
-#: left the lanes filter of 1,024 trials x 2,000 rows (16 MiB) and of 4,096 trials x 500 rows
-#: (both) to the thunk runtime, 2.4-2.8x slower there (benchmarks/README.md).
+#: The bound kckf-jax sets: 1 TiB, every loop the pass can take. Smaller bounds leave the larger
+#: batches' loops to the thunk runtime, which was slower there at every size measured
+#: (``python benchmarks/cpu_loops.py --cases lanes_1024,lanes_4096 --bounds ...``,
+#: benchmarks/README.md).
 LOOP_BYTES = 1 << 40
 #: The environment variable that overrides it: ``0`` for XLA's default, or a bound in bytes.
 ENV = "KCKF_XLA_LOOPS"
