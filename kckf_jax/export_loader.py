@@ -25,9 +25,12 @@ import math
 import os
 import sys
 
-# One thread for XLA's tiny kernels (no thread hand-offs per packet), and synchronous dispatch.
-os.environ.setdefault("XLA_FLAGS", "--xla_cpu_multi_thread_eigen=false "
-                      "intra_op_parallelism_threads=1")
+# One thread for XLA's tiny kernels (no thread hand-offs per packet), and synchronous dispatch;
+# added to flags set before (importing kckf_jax sets one, its CPU loops).
+_FLAGS = os.environ.get("XLA_FLAGS", "")
+if "intra_op_parallelism_threads" not in _FLAGS:
+    os.environ["XLA_FLAGS"] = (_FLAGS + " --xla_cpu_multi_thread_eigen=false "
+                               "intra_op_parallelism_threads=1").strip()
 import jax  # noqa: E402
 
 jax.config.update("jax_cpu_enable_async_dispatch", False)
