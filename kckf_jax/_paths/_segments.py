@@ -116,73 +116,77 @@ class Segments(AbstractPath):
         pass and every repair pass (each in a ``lax.cond``) in one program, for a caller's
         ``jit``; ``run_filter`` and ``filter_batch`` run ``run_pass`` on the host instead,
         each pass a program of its own, so that a recording whose check passes compiles no
-        repair (one hour: 2.9 s of compiling -> about 1 s)."""
+        repair (one recorded-like hour: 2.95 -> 1.75 s of compiling)."""
         last = self.run_pass(params, series, method, state)[2]
         B, T = jnp.shape(series.dt)
         for _ in range(self.repairs if self.segments_of(B, T, state.z.dtype) > 1 else 0):
             last = jax.lax.cond(last.ok, lambda p: p,
                                 lambda p: self.run_pass(params, series, method, state, p)[2],
                                 last)
-        return self.run_pass(params, series, method, state, last, rerun=False)[:2] + (last.ok,)
+        return self._result(params, series, method, state, last) + (last.ok,)
 
     def run_pass(self, params: Params, series: SensorSeries, method: str, state: FilterState,
-                 last: SegmentPass | None = None, rerun: bool = True
-                 ) -> tuple[FilterState, Estimate, SegmentPass]:
+                 last: SegmentPass | None = None) -> tuple[FilterState, Estimate, SegmentPass]:
         """One pass over the segments: the first (``last`` is ``None``: every segment warmed
         up from the entering state) or a repair (every segment's own rows again, entering
         where the one before it ended in ``last``: the first enters as before). A segment
         whose predecessor was right is now right; if every segment ends where it ended in
-        ``last``, every one entered where the sequential filter was. Returns the estimates of
-        the pass, its final state and the ``SegmentPass`` a repair would start from, its
-        check in ``ok``. ``rerun=False``: no pass, the estimates of ``last`` (whose rows it
-        keeps)."""
+        ``last``, every one entered where the sequential filter was. Returns the pass's final
+        state and estimates, and the ``SegmentPass`` a repair would start from, its check in
+        ``ok``."""
         st = structure(params.robot, method)
         dtype = state.z.dtype
         series = plausible(params, jax.tree_util.tree_map(
             lambda x: jnp.asarray(x).astype(dtype), series))
-        B, T = series.dt.shape
-        S = self.segments_of(B, T, dtype)
-        W = self.warmup(dtype) if S > 1 else 0
-        L = -(-T // S)
+        B, T, S, W, L = self._layout(series, dtype)
 
         def padded(x, fill):  # (B, T, ...) -> (B, S * L, ...): no-op rows at the end
             return jnp.pad(x, [(0, 0), (0, S * L - T)] + [(0, 0)] * (x.ndim - 2),
                            constant_values=fill)
 
-        if not rerun:
-            this = last
-        else:
-            fills = (0.0, jnp.nan, jnp.nan)
-            rows = [padded(x, f) for x, f in zip((series.dt, series.gyro, series.hall_v), fills)]
-            own = lane_inputs(params, st, *(x.reshape((B * S, L) + x.shape[2:]) for x in rows))
-            first = np.arange(B * S) % S == 0  # the lanes that hold a trial's first segment
-            if last is None:
-                starts = tuple(jnp.repeat(x, S, axis=0)
-                               for x in (state.z, state.P, state.gyro_hold))
-                inputs = own
-                if W:
-                    # Segment s first runs the last W rows of segment s - 1 (W <= L): the
-                    # same inputs, one lane over, in the same scan; the first segment of a
-                    # trial runs W no-op rows, which leave its entering state exactly as it
-                    # was.
-                    def warm(x, fill):
-                        w = jnp.where(first, fill, jnp.roll(x[L - W:], 1, axis=-1))
-                        return jnp.concatenate([w, x])
+        fills = (0.0, jnp.nan, jnp.nan)
+        rows = [padded(x, f) for x, f in zip((series.dt, series.gyro, series.hall_v), fills)]
+        own = lane_inputs(params, st, *(x.reshape((B * S, L) + x.shape[2:]) for x in rows))
+        first = np.arange(B * S) % S == 0  # the lanes that hold a trial's first segment
+        if last is None:
+            starts = tuple(jnp.repeat(x, S, axis=0) for x in (state.z, state.P, state.gyro_hold))
+            inputs = own
+            if W:
+                # Segment s first runs the last W rows of segment s - 1 (W <= L): the same
+                # inputs, one lane over, in the same scan; the first segment of a trial runs W
+                # no-op rows, which leave its entering state exactly as it was.
+                def warm(x, fill):
+                    w = jnp.where(first, fill, jnp.roll(x[L - W:], 1, axis=-1))
+                    return jnp.concatenate([w, x])
 
-                    leaves, tree = jax.tree_util.tree_flatten(own)
-                    inputs = jax.tree_util.tree_unflatten(
-                        tree, [warm(x, f) for x, f in zip(leaves, NO_OP_INPUTS, strict=True)])
-                zT, PT, hT, (z_rows, P_rows, skipped), entered = lane_scan(
-                    params, st, *starts, None, None, None, inputs=inputs, snapshot_row=W)
-                rows_out = (z_rows[W:], P_rows[W:], skipped[W:])
-            else:
-                entered = tuple(jnp.where(_lanes_first(first, e), e, jnp.roll(x, 1, axis=0))
-                                for e, x in zip(last.entered, last.ended))
-                zT, PT, hT, rows_out = lane_scan(params, st, *entered, None, None, None,
-                                                 inputs=own)
-            ended = (zT, PT, hT)
-            this = SegmentPass(ended, entered, rows_out,
-                               segment_check(entered, ended, B, S, self.atol(dtype)))
+                leaves, tree = jax.tree_util.tree_flatten(own)
+                inputs = jax.tree_util.tree_unflatten(
+                    tree, [warm(x, f) for x, f in zip(leaves, NO_OP_INPUTS, strict=True)])
+            zT, PT, hT, (z_rows, P_rows, skipped), entered = lane_scan(
+                params, st, *starts, None, None, None, inputs=inputs, snapshot_row=W)
+            rows_out = (z_rows[W:], P_rows[W:], skipped[W:])
+        else:
+            entered = tuple(jnp.where(_lanes_first(first, e), e, jnp.roll(x, 1, axis=0))
+                            for e, x in zip(last.entered, last.ended))
+            zT, PT, hT, rows_out = lane_scan(params, st, *entered, None, None, None,
+                                             inputs=own)
+        ended = (zT, PT, hT)
+        this = SegmentPass(ended, entered, rows_out,
+                           segment_check(entered, ended, B, S, self.atol(dtype)))
+        return self._result(params, series, method, state, this) + (this,)
+
+    def _layout(self, series: SensorSeries, dtype) -> tuple[int, int, int, int, int]:
+        """``(B, T, S, W, L)``: trials, rows, segments per trial, warm-up rows, rows per
+        segment."""
+        B, T = jnp.shape(series.dt)
+        S = self.segments_of(B, T, dtype)
+        return B, T, S, self.warmup(dtype) if S > 1 else 0, -(-T // S)
+
+    def _result(self, params: Params, series: SensorSeries, method: str, state: FilterState,
+                this: SegmentPass) -> tuple[FilterState, Estimate]:
+        """The final state and estimates of a pass, trials first."""
+        st = structure(params.robot, method)
+        B, T, S, _, L = self._layout(series, state.z.dtype)
         z_rows, P_rows, skipped = this.rows
         angles, std, bias = lane_estimates(st, z_rows, P_rows)
 
@@ -191,8 +195,7 @@ class Segments(AbstractPath):
 
         est = Estimate(trials(angles), trials(std), trials(bias),
                        trials(jnp.moveaxis(skipped, 0, 1)))
-        final = FilterState(*(_split(x, B, S)[:, -1] for x in this.ended))
-        return final, est, this
+        return FilterState(*(_split(x, B, S)[:, -1] for x in this.ended)), est
 
 
 class SegmentPass(NamedTuple):
