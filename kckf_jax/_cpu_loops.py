@@ -95,14 +95,14 @@ def configure(environ: MutableMapping[str, str] = os.environ,
     it already, or JAX's backend has started (``started()``; then XLA has read its flags and
     the setting could not take effect: a warning says so when the backend is a CPU)."""
     flags = environ.get("XLA_FLAGS", "")
+    have = preset_bytes(flags)
     asked = environ.get(ENV, "").strip()
     if asked and not asked.isdigit():
         raise ValueError(f"{ENV}={asked!r}: expected 0 (XLA's default) or a bound in bytes per "
                          f"loop iteration (kckf-jax's default is {LOOP_BYTES})")
     if asked == "0":
-        return CpuLoops("off", preset_bytes(flags) or XLA_DEFAULT_BYTES,
+        return CpuLoops("off", have or XLA_DEFAULT_BYTES,
                         f"{ENV}=0: XLA's default, each loop iteration run kernel by kernel")
-    have = preset_bytes(flags)
     if have is not None:
         return CpuLoops("preset", have, f"XLA_FLAGS sets {OPTION}={have}; kept")
     if (started or _backend_started)():
