@@ -18,7 +18,10 @@ The public API (everything else lives in private modules; docs/architecture.md m
   ``hall_voltage``;
 * sessions: ``Session``, ``SessionError``, ``read_session``, ``write_session``,
   ``align_mocap``, ``simulate``, ``SimConfig``, ``KINDS``, ``sample_data_dir`` (the sample
-  sessions shipped with the package);
+  sessions shipped with the package), ``Fault`` and ``inject_faults`` (sensor faults written
+  into a session on request);
+* set-up mistakes named before filtering (swapped Hall columns, a gyro of the wrong sign, a
+  Hall curve that cannot be the sensor's): ``setup_check``, ``SetupFinding``;
 * evaluation and fitting: ``rmse_table``, ``fused_hall_error``, ``fit``, ``FitConfig``,
   ``FitResult``, ``FitInterrupted``, ``initial_params``, ``loss_fn``, ``make_batch``,
   ``shard_batch``;
@@ -83,6 +86,10 @@ from ._session import SessionError as SessionError
 from ._session import align_mocap as align_mocap
 from ._session import read_session as read_session
 from ._session import write_session as write_session
+from ._setup_check import SetupFinding as SetupFinding
+from ._setup_check import setup_check as setup_check
+from ._sim_faults import Fault as Fault
+from ._sim_faults import inject_faults as inject_faults
 from ._simulate import KINDS as KINDS
 from ._simulate import SimConfig as SimConfig
 from ._simulate import simulate as simulate

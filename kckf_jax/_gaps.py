@@ -5,6 +5,14 @@ The filter either predicts across it (``"predict"``: the covariance grows with t
 the next readings pull the estimate back) or starts again from its initial state at the first
 row after it (``"restart"``); a gap longer than ``max_predict_s`` always restarts. Every
 command reports the gaps it found and what it did (stderr, and the JSON of ``kckf evaluate``).
+
+Predicting holds the last gyro rates across the gap, which describes a worn robot's motion for
+a fraction of a second, not for minutes: on a 60 s bench session (``kckf simulate --kind
+cyclic --seed 1``, paper defaults, float32) whose sensor rows stop for a while halfway,
+predicting across 2 s scored 8.7 deg mean RMSE and across 10 min 1,670 deg (estimates to
+7,818 deg, the covariance losing definiteness), where restarting scored 1.44 deg for every
+length (clean: 1.41). So by default only gaps up to ``DEFAULT_MAX_PREDICT_S`` are predicted
+across, and the filter starts again after any longer one (docs/faults.md).
 """
 
 from __future__ import annotations
@@ -14,6 +22,8 @@ from dataclasses import dataclass
 import numpy as np
 
 ON_GAP = ("predict", "restart")
+#: The longest gap predicted across by default (s): a quarter to a half of a gait cycle.
+DEFAULT_MAX_PREDICT_S = 1.0
 
 
 @dataclass(frozen=True)
@@ -23,18 +33,22 @@ class GapPolicy:
     Attributes:
         gap_s: a time step longer than this (s) is a gap.
         on_gap: ``"predict"`` (step across it) or ``"restart"`` (start again after it).
-        max_predict_s: a gap longer than this restarts even with ``on_gap="predict"``.
+        max_predict_s: a gap longer than this restarts even with ``on_gap="predict"``;
+            ``None`` (default): ``DEFAULT_MAX_PREDICT_S``, or ``gap_s`` where that is longer
+            (every gap then restarts).
     """
 
     gap_s: float = 0.5
     on_gap: str = "predict"
-    max_predict_s: float = 3600.0
+    max_predict_s: float | None = None
 
     def __post_init__(self):
         if self.on_gap not in ON_GAP:
             raise ValueError(f"on_gap must be 'predict' or 'restart', got {self.on_gap!r}")
         if not self.gap_s > 0:
             raise ValueError(f"gap_s must be positive, got {self.gap_s}")
+        if self.max_predict_s is None:
+            object.__setattr__(self, "max_predict_s", max(DEFAULT_MAX_PREDICT_S, self.gap_s))
         if not self.max_predict_s >= self.gap_s:
             raise ValueError(f"max_predict_s must be at least gap_s, got {self.max_predict_s}")
 

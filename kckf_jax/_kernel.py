@@ -21,8 +21,10 @@ Conventions shared with the NumPy reference in ``tests/``:
 * the gyro rates of row ``k - 1`` drive the prediction from ``k - 1`` to ``k`` (Eq. 9 uses
   ``omega(k)`` to reach ``k + 1``); a missing gyro reading holds that channel's last value;
 * a missing Hall reading (NaN) removes only its own measurement row at that step;
-* a reading outside its physical range (``Params.limits``: a fault in the data, not a
-  reading) is treated as missing;
+* a reading that cannot be a measurement (outside its physical range ``Params.limits``, a
+  railed Hall sensor, an angle no joint reaches, a saturated gyro: ``_screen``) is treated as
+  missing, and a missing gyro reading is taken from a gyro measuring the same rate
+  (``Robot.gyro_stand_ins``) where one reads;
 * a Kalman step whose new state is not finite is skipped: the state is kept as it was, and
   ``Estimate.skipped`` says so (the streaming filter reports it as ``rejected``);
 * a padded step (``dt = 0``, every reading NaN) leaves the state unchanged.
@@ -41,7 +43,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, ArrayLike, Bool, Float
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from ._custom_types import BlockCov, BlockHall, BlockRates, BlockState, BlockValid
 from ._hall import hall_angle, hall_slope
@@ -55,6 +57,7 @@ from ._model import (
     structure,
 )
 from ._params import Params
+from ._screen import screen
 
 METHODS = ("kckf", "kf", "gyro", "hall_l", "hall_r")
 
@@ -96,13 +99,17 @@ class Estimate(eqx.Module):
     (static) names the computation that produced it (``"sequential"``, ``"steady"``, ...;
     ``None`` for a bare ``step`` or ``scan_filter``): every path gives the same estimates, to
     rounding. ``names`` (static, set by ``run_filter`` and friends) are the angles' names:
-    ``columns()`` gives the estimates keyed by them.
+    ``columns()`` gives the estimates keyed by them. ``faults`` (set by ``run_filter``,
+    ``filter_batch`` and ``filter_sessions``): per row and reading (``Robot.gyro_names`` then
+    ``Robot.hall_names``) why the filter did not use it, a code of ``_screen.FAULT_KINDS``
+    (0: used or missing); ``kk.fault_stretches`` names them by column and time.
     """
 
     angles: Float[ArrayLike, "*T K"]
     angle_std: Float[ArrayLike, "*T K"]
     bias: Float[ArrayLike, "*T K"]
     skipped: Bool[ArrayLike, "*T"] | None = None
+    faults: Int[ArrayLike, "*T C"] | None = None
     path: str | None = eqx.field(static=True, default=None)
     names: tuple[str, ...] | None = eqx.field(static=True, default=None)
 
@@ -373,10 +380,12 @@ def step(
 
 
 def plausible(params: Params, series: SensorSeries) -> SensorSeries:
-    """``series`` (a row, a recording or a batch) with every reading outside
-    ``params.limits`` made missing: a fault in the data, treated like a dropped reading."""
-    gyro, hall_v = params.limits.mask(jnp.asarray(series.gyro), jnp.asarray(series.hall_v))
-    return SensorSeries(series.dt, gyro, hall_v)
+    """``series`` (a row, a recording or a batch) as the filter uses it (``_screen.screen``):
+    every reading that cannot be a measurement (outside ``params.limits``, a railed Hall
+    sensor, an angle no joint reaches, a saturated gyro) made missing, and a missing gyro
+    reading taken from a gyro that measures the same rate (``Robot.gyro_stand_ins``)."""
+    used = screen(params, jnp.asarray(series.gyro), jnp.asarray(series.hall_v))
+    return SensorSeries(series.dt, used.gyro, used.hall_v)
 
 
 def scan_filter(

@@ -19,7 +19,8 @@ from ._metrics import rmse_table
 from ._model import FILTER_METHODS
 from ._params import Params
 from ._run import filter_sessions, session_params, session_series
-from ._session import Session
+from ._screen import OUT_OF_RANGE, describe_faults, fault_codes, fault_stretches
+from ._session import Session, split_at_gaps
 
 PAPER_TABLE_METHODS = ("gyro", "hall_l", "hall_r", "kf", "kckf")
 TABLE_LABELS = {"gyro": "Gyro", "hall_l": "Hall l", "hall_r": "Hall r", "kf": "Std KF",
@@ -28,33 +29,34 @@ TABLE_LABELS = {"gyro": "Gyro", "hall_l": "Hall l", "hall_r": "Hall r", "kf": "S
 
 def data_faults(sessions: Sequence[Session], params: Params | None = None,
                 gaps: GapPolicy = GapPolicy()) -> tuple[dict, list[str]]:
-    """What is wrong with the data, before any filter runs: per session, the readings outside
-    their physical range (which every filter treats as missing) and the gaps in the sensor
-    rows (and what the filter does across them). Returns the JSON form ``{"out_of_range":
-    {session: {column: {"count", "first_t_s"}}}, "gaps": {session: [gap, ...]}}`` (sessions
-    with nothing to say left out) and one line for people per finding."""
-    out_of_range, gap_doc, lines = {}, {}, []
+    """What is wrong with the data, before any filter runs: per session, the readings the
+    filter does not use because they cannot be measurements (``_screen``: outside the
+    physical range, railed, unreachable, saturated), by column, kind and stretch of time, and
+    the gaps in the sensor rows (and what the filter does across them). Returns the JSON form
+    ``{"faults": {session: [{"column", "kind", "from_s", "to_s", "count"}]}, "out_of_range":
+    {session: {column: {"count", "first_t_s"}}}, "gaps": {session: [gap, ...]}}`` (every
+    session in ``"faults"``, an empty list when clean; the others only sessions with something
+    to say) and one line for people per finding."""
+    faults, out_of_range, gap_doc, lines = {}, {}, {}, []
     for s, p in zip(sessions, session_params(sessions, params)):
         key = s.path or "session"
-        bad_g, bad_h = p.limits.outside(s.gyro, s.hall_v)
         names = s.robot.gyro_names + s.robot.hall_names
-        bad = np.concatenate([bad_g, bad_h], axis=1)
+        codes = fault_codes(p, s.gyro, s.hall_v, np)
+        faults[key] = fault_stretches(s.t, codes, names)
         cols = {}
-        for j in np.flatnonzero(bad.any(axis=0)):
-            rows = np.flatnonzero(bad[:, j])
+        for j in np.flatnonzero((codes == OUT_OF_RANGE).any(axis=0)):
+            rows = np.flatnonzero(codes[:, j] == OUT_OF_RANGE)
             cols[names[j]] = {"count": int(rows.size), "first_t_s": float(s.t[rows[0]])}
         if cols:
             out_of_range[key] = cols
-            text = ", ".join(f"{n} x{c['count']} (first at t = {c['first_t_s']:.6g} s)"
-                             for n, c in list(cols.items())[:4])
-            more = f" and {len(cols) - 4} more columns" if len(cols) > 4 else ""
-            lines.append(f"{key}: {int(bad.sum())} reading(s) outside the physical range "
-                         f"({p.limits.describe()}) treated as missing: {text}{more}")
+        line = describe_faults(key, faults[key])
+        if line:
+            lines.append(line)
         found = find_gaps(s.t, gaps)
         if found:
             gap_doc[key] = [g.to_json() for g in found]
             lines.append(describe_gaps(key, found))
-    return {"out_of_range": out_of_range, "gaps": gap_doc}, lines
+    return {"faults": faults, "out_of_range": out_of_range, "gaps": gap_doc}, lines
 
 
 def estimate_faults(sessions: Sequence[Session], method: str, estimates) -> list[str]:
@@ -72,24 +74,29 @@ def estimate_faults(sessions: Sequence[Session], method: str, estimates) -> list
 
 
 def consistency_figures(sessions: Sequence[Session], method: str, estimates,
-                        params: Params | None = None) -> tuple[dict, list[np.ndarray]]:
+                        params: Params | None = None, gaps: GapPolicy = GapPolicy()
+                        ) -> tuple[dict, list[np.ndarray]]:
     """The Kalman filters' consistency on ``sessions``: ``{"nis": ..., "nees": ...}``
     (``_likelihood.consistency``: the mean normalised innovation squared of the fused Hall
     readings with the 95 % interval of a consistent filter's mean, and the mean normalised
     squared error of the angles where motion capture exists, whose terms are correlated in
     time so that it has no such interval), and each session's
-    per-row mean NIS (NaN where no reading was used) for the plots."""
+    per-row mean NIS (NaN where no reading was used) for the plots. The innovations are the
+    filter's own: across a gap where ``gaps`` restarts the filter, they restart too."""
     nis_all, nees_all, rows = [], [], []
     for s, p, e in zip(sessions, session_params(sessions, params), estimates):
-        nu, var, valid = (np.asarray(x, np.float64)
-                          for x in _innovations(p, session_series(s, p.log_q.dtype), method))
+        parts = [[np.asarray(x, np.float64) for x in
+                  _innovations(p, session_series(piece, p.log_q.dtype), method)]
+                 for piece in split_at_gaps(s, gaps)]
+        nu, var, valid = (np.concatenate(x) for x in zip(*parts))
+        valid = (valid > 0) & (var > 0)
         nis = np.where(valid, nu**2 / np.where(valid, var, 1.0), np.nan)
         nis_all.append(nis[np.isfinite(nis)])
         with np.errstate(invalid="ignore"):
             rows.append(np.nanmean(nis.reshape(nis.shape[0], -1), axis=1)
                         if np.isfinite(nis).any() else np.full(nis.shape[0], np.nan))
-        err = (np.asarray(e.angles, np.float64) - s.truth()) / np.asarray(e.angle_std,
-                                                                         np.float64)
+        std = np.asarray(e.angle_std, np.float64)
+        err = (np.asarray(e.angles, np.float64) - s.truth()) / np.where(std > 0, std, np.nan)
         nees_all.append(err[np.isfinite(err)] ** 2)
     return ({"nis": consistency(np.concatenate(nis_all)),
              "nees": consistency(np.concatenate(nees_all), independent=False)}, rows)
@@ -133,7 +140,7 @@ def evaluate_sessions(sessions: Sequence[Session], methods: Sequence[str],
         out[m]["path"] = "+".join(dict.fromkeys(e.path for e in est))
         out[m]["skipped_updates"] = int(sum(np.asarray(e.skipped).sum() for e in est))
         if kalman:
-            figures, nis_rows[m] = consistency_figures(sessions, m, est, params)
+            figures, nis_rows[m] = consistency_figures(sessions, m, est, params, gaps)
             out[m].update(figures)
             if smooth:
                 out[m]["smoothed"] = True

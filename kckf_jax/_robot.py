@@ -235,5 +235,35 @@ class Robot:
         """The names of the gyro columns the filters read (``used_gyro_index``)."""
         return tuple(self.gyro_names[i] for i in self.used_gyro_index)
 
+    @functools.cached_property
+    def gyro_stand_ins(self) -> tuple[tuple[int, ...], ...]:
+        """Per gyro channel (``gyro_names`` order), the channels that measure the same rate
+        under the paper's model (Sec. 2.3: rotations add per axis): the gyros about the same
+        axis on the links that no joint about that axis separates from this one, nearest
+        first (the base link's side first on a tie). A missing or faulty reading of a channel
+        the filters read takes the first of these that is there (``_screen``), so a dropped
+        or saturated gyro costs only what it must.
+
+        Example:
+            >>> Robot.from_spec("x,y,x,y").gyro_stand_ins[9]  # gyro4_x: link 5 turns with it
+            (12,)
+        """
+        n_links = self.n_links
+        out = []
+        for link in range(n_links):
+            for ax, a in enumerate(AXES):
+                # joint i (0-based) joins links i and i + 1; one about ``a`` separates them.
+                cut = [a in axes for axes in self.joints]
+                lo = link
+                while lo > 0 and not cut[lo - 1]:
+                    lo -= 1
+                hi = link
+                while hi < n_links - 1 and not cut[hi]:
+                    hi += 1
+                mates = sorted((L for L in range(lo, hi + 1) if L != link),
+                               key=lambda L, link=link: (abs(L - link), L))
+                out.append(tuple(3 * L + ax for L in mates))
+        return tuple(out)
+
     def __repr__(self) -> str:
         return f"Robot.from_spec({self.spec!r})"

@@ -28,6 +28,7 @@ from ._kernel import (
 )
 from ._params import Params
 from ._paths import AbstractPath, Auto, PathChoice, Segments, Sequential, as_path, is_traced
+from ._screen import fault_codes
 from ._session import Session, split_at_gaps
 from ._smooth import smooth_batch
 
@@ -92,11 +93,22 @@ def run_filter(
         final, est, ok = _segments_on_host(
             chosen, lambda last: _run_one_pass(chosen, params, series, method, state, last))
         if ok:
-            return final, dataclasses.replace(est, path=chosen.name,
-                                              names=params.robot.angle_names)
+            return final, _named(est, chosen, params, series)
         chosen = Sequential()  # the segments' check failed, and so did its repairs
     final, est = _run_one(chosen, params, series, method, state)
-    return final, dataclasses.replace(est, path=chosen.name, names=params.robot.angle_names)
+    return final, _named(est, chosen, params, series)
+
+
+def _named(est: Estimate, path: AbstractPath, params: Params, series: SensorSeries) -> Estimate:
+    """``est`` with the path that ran, the angles' names and why each reading the filter did
+    not use was not used (``Estimate.faults``: the step's own decision, ``_screen``)."""
+    return dataclasses.replace(est, path=path.name, names=params.robot.angle_names,
+                               faults=_fault_codes(params, series.gyro, series.hall_v))
+
+
+@eqx.filter_jit
+def _fault_codes(params, gyro, hall_v):
+    return fault_codes(params, gyro, hall_v)
 
 
 def _one(x):
@@ -149,10 +161,10 @@ def filter_batch(params: Params, series: SensorSeries, method: str = "kckf",
         _, est, ok = _segments_on_host(
             chosen, lambda last: _run_batch_pass(chosen, params, series, method, last))
         if ok:
-            return dataclasses.replace(est, path=chosen.name, names=params.robot.angle_names)
+            return _named(est, chosen, params, series)
         chosen = Sequential()  # the segments' check failed, and so did its repairs
     est = _run_batch(chosen, params, series, method)
-    return dataclasses.replace(est, path=chosen.name, names=params.robot.angle_names)
+    return _named(est, chosen, params, series)
 
 
 @eqx.filter_jit
@@ -253,7 +265,11 @@ def filter_sessions(
         dtype_p = p.log_q.dtype
         batch = pad_series([session_series(pieces[j][1], np.float64) for j in members])
         batch = jax.tree_util.tree_map(lambda x, d=dtype_p: jnp.asarray(x, d), batch)
-        est = smooth_batch(p, batch, method) if smooth else filter_batch(p, batch, method, path)
+        if smooth:
+            est = dataclasses.replace(smooth_batch(p, batch, method),
+                                      faults=_fault_codes(p, batch.gyro, batch.hall_v))
+        else:
+            est = filter_batch(p, batch, method, path)
         arrays = jax.tree_util.tree_map(np.asarray, est)
         for b, j in enumerate(members):
             n = pieces[j][1].n_steps

@@ -410,7 +410,7 @@ def read_meta(meta_path: str | os.PathLike) -> tuple[Robot, dict, SensorLimits |
 
 
 def _limits_of(meta: dict, meta_path: str) -> SensorLimits | None:
-    if "hall_v_range" not in meta and "gyro_range_rad_s" not in meta:
+    if not {"hall_v_range", "gyro_range_rad_s", "joint_range_rad"} & set(meta):
         return None
     try:
         return SensorLimits.from_meta(meta, meta_path)

@@ -21,7 +21,7 @@ Motions (``kind``):
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -30,6 +30,7 @@ from ._hall import DEG, PAPER_HALL_DEG, hall_voltage
 from ._params import hall_arrays
 from ._robot import AXES, Robot
 from ._session import Session
+from ._sim_faults import Fault, inject_faults
 
 KINDS = ("cyclic", "static", "human")
 DPS = DEG  # one degree per second, in rad/s
@@ -173,6 +174,7 @@ def simulate(
     drop_prob: float | None = None,
     device_seed: int | None = None,
     true_hall_models: Mapping[str, Mapping] | None = None,
+    faults: Sequence[Fault] = (),
 ) -> Session:
     """Simulate one recorded session of the exoshell on ``robot``.
 
@@ -189,6 +191,8 @@ def simulate(
             same ``device_seed`` are trials of the same exoshell (default: ``seed``).
         true_hall_models: the sensors' true Eq. 1 curves (``meta.json`` form, any unit) instead
             of random ones; for experiments with known ground-truth parameters.
+        faults: sensor faults written into the finished session (``inject_faults``, seeded
+            by ``seed``; none by default, and then nothing changes).
 
     Returns:
         A ``Session`` with sensors, motion capture (own rate, own clock) and meta. The true
@@ -318,7 +322,7 @@ def simulate(
         },
         "gyro_zero_rate_rad_s": zero_rate.round(8).tolist(),
     }
-    return Session(
+    session = Session(
         robot=robot, t=t, gyro=gyro.reshape(n, -1), hall_v=v,
         sample_rate_hz=cfg.sample_rate_hz,
         mocap_t=t_frames - offset, mocap=truth, mocap_time_offset_s=offset,
@@ -326,3 +330,4 @@ def simulate(
         description=f"simulated {kind} session, seed {seed}, joints {robot.spec} (kckf-jax)",
         extra_meta={"simulation": simulation},
     )
+    return inject_faults(session, faults, seed=seed) if faults else session

@@ -82,14 +82,18 @@ def _check_methods(methods: Sequence[str]) -> list[str]:
 def cmd_simulate(args) -> int:
     from ._robot import Robot
     from ._session import write_session
+    from ._sim_faults import Fault
     from ._simulate import simulate
 
     robot = Robot.from_spec(args.joints)
+    faults = [Fault.parse(spec) for spec in args.fault]  # a bad spec: one line, exit 2
     session = simulate(robot, args.kind, seed=args.seed, duration_s=args.duration,
-                       drop_prob=args.drop_prob, move_s=args.move)
+                       drop_prob=args.drop_prob, move_s=args.move,
+                       device_seed=args.device_seed, faults=faults)
     write_session(session, args.out)
     _say(args, f"wrote {args.out}: {session.n_steps} sensor rows, {len(session.mocap_t)} mocap "
-               f"frames, joints {robot.spec}")
+               f"frames, joints {robot.spec}"
+               + (f", faults: {' '.join(map(str, faults))}" if faults else ""))
     return 0
 
 
@@ -296,15 +300,15 @@ def cmd_stream(args) -> int:
     print(f"kckf stream: listening on {source.description} (method {method}, "
           f"{jnp_name(params)}{extra})", file=sys.stderr, flush=True)
     try:
-        counts = run_stream(source, sink, sf, PacketParser(params.robot, limits=params.limits),
+        counts = run_stream(source, sink, sf, PacketParser(params.robot, params=params),
                             max_packets=args.max_packets, idle_timeout=args.idle_timeout,
                             should_stop=lambda: stop["now"])
     finally:
         source.close()
     faulty = counts.pop("faulty", {})
     if faulty:
-        _warn(args, ["faulty readings (not a number, infinite or outside the physical range: "
-                     f"{params.limits.describe()}) treated as missing: "
+        _warn(args, ["kckf stream: faulty readings not used (limits "
+                     f"{params.limits.describe()}; docs/faults.md): "
                      + ", ".join(f"{k} x{v}" for k, v in faulty.items())])
     _say(args, "kckf stream: " + ", ".join(f"{k} {v}" for k, v in counts.items()))
     return 0
@@ -455,6 +459,17 @@ def build_parser() -> argparse.ArgumentParser:
                    help="probability that a reading is missing (default 0)")
     s.add_argument("--move", type=float, default=60.0,
                    help="static kind: seconds of movement before holding still (default 60)")
+    s.add_argument("--device-seed", type=int, default=None, metavar="S",
+                   help="seeds the robot itself (Hall curves, gyro scale errors; default: "
+                        "--seed): sessions with one device seed are trials of one robot")
+    s.add_argument("--fault", action="append", default=[], metavar="SPEC",
+                   help="write a sensor fault (repeatable): KIND:COLUMN[@FROM-TO][=SIZE] or "
+                        "gap@FROM-TO; @FROM runs to the end, @-TO from the start, no span "
+                        "means the whole session, no size the kind's default. Kinds: "
+                        "disconnect, short, flicker, coeff (Hall column), swap (joint axis, "
+                        "e.g. hall1_x), noise, stuck, dropout (Hall or gyro), clip, bias_step, "
+                        "blank, sign (gyro), gap (no column). E.g. "
+                        "disconnect:hall1_x_l@20-30, clip:gyro2_x=2.0 (docs/simulator.md)")
     s.set_defaults(func=cmd_simulate)
 
     f = sub.add_parser("filter", parents=[common], help="run one filter over a session")

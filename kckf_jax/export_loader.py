@@ -73,7 +73,7 @@ class ExportedStep:
         self.gap_s = float(gap_s if gap_s is not None else gaps.get("gap_s", 0.5))
         self.on_gap = on_gap or gaps.get("on_gap", "predict")
         self.max_predict_s = float(max_predict_s if max_predict_s is not None
-                                   else gaps.get("max_predict_s", 3600.0))
+                                   else gaps.get("max_predict_s", 1.0))
         self._x = np.empty(h["x_size"], self.dtype)
         self.reset()
 

@@ -18,7 +18,9 @@ def reference_params(params: Params) -> dict:
     out = {k: np.asarray(getattr(params, k), dtype=np.float64)
            for k in ("q", "angle_rw", "bias_rw", "sigma_hall", "sigma_hall_v", "p0_angle",
                      "p0_bias")}
-    out.update(a=a, b=b, c=c, d=d, sign=sign, hall_noise=params.hall_noise)
+    out.update(a=a, b=b, c=c, d=d, sign=sign, hall_noise=params.hall_noise,
+               hall_v_range=params.limits.hall_v, gyro_range_rad_s=params.limits.gyro_rad_s,
+               joint_range_rad=params.limits.joint_range_rad)
     return out
 
 

@@ -209,6 +209,59 @@ def _dt(t):
     return dt
 
 
+def usable_readings(joints, gyro, hall_v, params):
+    """The readings the filter may use (the session format's rules, written here again):
+
+    * a Hall voltage outside ``params["hall_v_range"]``, or within 0.5 % of its span of
+      either end (a railed ADC), or whose Eq. 1 angle exceeds ``params["joint_range_rad"]``
+      in magnitude, is not a measurement;
+    * a gyro rate at 99.9 % of ``params["gyro_range_rad_s"]`` or beyond is saturated;
+    * then a gyro channel that a rate uses (Eq. 2) and that has no reading takes the reading
+      of the nearest link turning with it about that axis (no joint about that axis in
+      between, the lower link first at equal distance), if that one has one.
+    """
+    L = layout(joints)
+    gyro = np.array(gyro, dtype=float)
+    hall_v = np.array(hall_v, dtype=float)
+    lo, hi = params.get("hall_v_range", (0.0, 3.3))
+    rail = 0.005 * (hi - lo)
+    reach = params.get("joint_range_rad", 2 * np.pi / 3)
+    full = params.get("gyro_range_rad_s", 4000 * np.pi / 180)
+    for m in range(L["M"]):
+        V = hall_v[:, m]
+        with np.errstate(over="ignore", invalid="ignore"):
+            ang = hall_angle(np.where(np.isfinite(V), V, 1.65), params, m)
+            bad = (V < lo + rail) | (V > hi - rail) | (np.abs(ang) > reach)
+        hall_v[bad, m] = np.nan
+    with np.errstate(invalid="ignore"):
+        gyro[np.abs(gyro) >= 0.999 * full] = np.nan
+    n = L["n"]
+    used = set(L["rate_plus"]) | set(L["rate_minus"])
+    cols = []
+    for c in range(L["n_gyro"]):
+        link, a = c // 3 + 1, AXES[c % 3]
+        col = gyro[:, c].copy()
+        if c in used:
+            # Candidate links, nearest first; walking stops at a joint about axis a.
+            down, up = [], []
+            k = link
+            while k > 1 and a not in joints[k - 2]:  # joint k-1 joins links k-1 and k
+                k -= 1
+                down.append(k)
+            k = link
+            while k < n + 1 and a not in joints[k - 1]:  # joint k joins links k and k+1
+                k += 1
+                up.append(k)
+            order = []
+            for d in range(max(len(down), len(up))):
+                order += down[d:d + 1] + up[d:d + 1]
+            for other in order:
+                src = gyro[:, 3 * (other - 1) + AXES.index(a)]
+                col = np.where(np.isnan(col), src, col)
+        cols.append(col)
+    return np.stack(cols, axis=1), hall_v
+
+
 def _update_hold(hold, row):
     """Gyro hold: keep the last finite value of each channel."""
     row = np.asarray(row, dtype=float)
@@ -229,7 +282,7 @@ def reference_filter(joints, t, gyro, hall_v, params, method) -> dict:
     K, N, M = L["K"], L["N"], L["M"]
     t = np.asarray(t, dtype=float)
     gyro = np.asarray(gyro, dtype=float)
-    hall_v = np.asarray(hall_v, dtype=float)
+    gyro, hall_v = usable_readings(joints, gyro, hall_v, params)
     T_len = t.shape[0]
     assert gyro.shape == (T_len, L["n_gyro"])
     assert hall_v.shape == (T_len, M)
@@ -298,7 +351,7 @@ def reference_baseline(joints, t, gyro, hall_v, params, method) -> np.ndarray:
     J, K = L["J"], L["K"]
     t = np.asarray(t, dtype=float)
     gyro = np.asarray(gyro, dtype=float)
-    hall_v = np.asarray(hall_v, dtype=float)
+    gyro, hall_v = usable_readings(joints, gyro, hall_v, params)
     T_len = t.shape[0]
     dt = _dt(t)
     out = np.full((T_len, K), np.nan)

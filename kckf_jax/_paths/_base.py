@@ -11,7 +11,6 @@ applies runs.
 from __future__ import annotations
 
 import abc
-import functools
 
 import equinox as eqx
 import jax
@@ -23,6 +22,7 @@ from .._kernel import Estimate, FilterState, SensorSeries
 from .._model import FILTER_METHODS
 from .._params import Params
 from .._robot import Robot
+from .._screen import screen
 
 #: Two time steps closer than this (s) count as equal: a constant step to the filter.
 STEP_TOL_S = 1e-9
@@ -68,27 +68,32 @@ def is_traced(*trees) -> bool:
 # ---------------------------------------------------------------------------- regularity
 def readings_present(params, gyro, hall_v, xp=jnp):
     """Per row (any leading axes): whether every used gyro reading (``Robot.used_gyro_index``)
-    is there, and whether every Hall reading is; a reading outside ``params.limits`` counts
-    as missing (the kernel's ``plausible``). ``params``: anything with ``robot`` and
-    ``limits`` (``Params``). NumPy (``xp=np``: one packet in the streaming
-    filter) or JAX (a recording, on the device)."""
-    gyro, hall_v = params.limits.mask(gyro, hall_v, xp)
+    is there, and whether every Hall reading is, as the filter uses them (``_screen.screen``,
+    the kernel's ``plausible``: a faulty reading is missing, a missing gyro reading may be
+    stood in for). ``params``: anything with ``robot``, ``limits`` and ``hall_coeffs``
+    (``Params``). NumPy (``xp=np``: one packet in the streaming filter) or JAX (a
+    recording, on the device)."""
+    gyro, hall_v = screen(params, gyro, hall_v, xp)[:2]
     used = xp.take(gyro, xp.asarray(params.robot.used_gyro_index), axis=-1)
     return xp.isfinite(used).all(axis=-1), xp.isfinite(hall_v).all(axis=-1)
 
 
 class _Layout(eqx.Module):
-    """The static part of ``Params`` the regularity check needs (hashable: a jit key)."""
+    """What the regularity check needs of ``Params``: the static layout and limits (a jit
+    key) and the Hall coefficients, or ``None`` where they are traced (a loss of the
+    parameters that closes over concrete data: the curve's check is then the caller's)."""
 
     robot: Robot = eqx.field(static=True)
     limits: object = eqx.field(static=True)
+    hall_coeffs: tuple | None
 
 
-def _static(params: Params) -> _Layout:
-    return _Layout(params.robot, params.limits)
+def _layout(params: Params) -> _Layout:
+    coeffs = None if is_traced(params) else params.hall_coeffs
+    return _Layout(params.robot, params.limits, coeffs)
 
 
-@functools.partial(jax.jit, static_argnums=0)
+@jax.jit
 def _regularity(layout: _Layout, dt: Float[Array, "*B T"], gyro: Float[Array, "*B T G"],
                 hall_v: Float[Array, "*B T M"]
                 ) -> tuple[Float[Array, ""], Float[Array, ""], Bool[Array, ""], Bool[Array, ""]]:
@@ -113,7 +118,7 @@ def regular_step(params: Params, series: SensorSeries) -> tuple[float | None, st
     # Concrete data inside a caller's trace (a jitted loss of the parameters that closes
     # over its recording) are still checked: evaluated now, not staged into the trace.
     with jax.ensure_compile_time_eval():
-        dev, first, gyro_ok, hall_ok = _regularity(_static(params), series.dt, series.gyro,
+        dev, first, gyro_ok, hall_ok = _regularity(_layout(params), series.dt, series.gyro,
                                                    series.hall_v)
     dev, first = float(dev), float(first)
     if not (dev <= STEP_TOL_S and first > 0):  # also false for a NaN step

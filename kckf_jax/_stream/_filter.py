@@ -16,7 +16,7 @@ from .._kernel import FilterState, SensorSeries, check_method, estimated, init_s
 from .._model import structure
 from .._params import Params
 from .._paths import STEP_TOL_S, Steady, converged_map, readings_present, relative_change
-from ._packets import USED, Packet
+from ._packets import USED, Packet, PacketParser
 
 #: Compiled once per parameter layout (``StreamingFilter.warmup`` compiles it up front).
 _converged_map = eqx.filter_jit(converged_map)
@@ -116,8 +116,8 @@ class StreamingFilter:
         gap_s, on_gap, max_predict_s: the gap policy, as the batch filter's (``GapPolicy``):
             a time step longer than ``gap_s`` is a gap (status ``gap``), predicted across
             (``"predict"``: the covariance grows with it) or restarted from the initial state
-            at this packet (``"restart"``, or a gap longer than ``max_predict_s``, or one
-            whose prediction overflows).
+            at this packet (``"restart"``, or a gap longer than ``max_predict_s``, default
+            ``GapPolicy``'s 1 s, or one whose prediction overflows).
         host_path: allow the host path (below).
         steady: the ``Steady`` path whose constants the host path follows (its head length
             and convergence tolerance).
@@ -144,12 +144,17 @@ class StreamingFilter:
     """
 
     def __init__(self, params: Params, method: str = "kckf", *, gap_s: float = 0.5,
-                 on_gap: str = "predict", max_predict_s: float = 3600.0,
+                 on_gap: str = "predict", max_predict_s: float | None = None,
                  host_path: bool = True, steady: Steady = Steady()):
         check_method(method)
         self.params, self.method, self.robot = params, method, params.robot
+        # Packets that did not come through a parser given these parameters are screened
+        # here, as the filter's step would (``_screen``): the host path must never see a
+        # reading the step would not use.
+        self._checker = PacketParser(params.robot, params=params)
         # The batch filter's gap policy (the same threshold and options: GapPolicy).
-        self.gaps = GapPolicy(float(gap_s), on_gap, float(max_predict_s))
+        self.gaps = GapPolicy(float(gap_s), on_gap,
+                              None if max_predict_s is None else float(max_predict_s))
         self.dtype = params.log_q.dtype
         self._G, self._M = 3 * self.robot.n_links, self.robot.n_hall
         self._K = self.robot.n_angles
@@ -243,6 +248,8 @@ class StreamingFilter:
         """Filter one packet; returns the output record (``t``, angles in rad, ``status``)."""
         if pkt.status not in USED:
             return self._record(pkt.t, pkt.status, pkt.note)
+        if not pkt.screened:
+            pkt = self._checker.check(pkt)
         if self.t_prev is not None and not pkt.t > self.t_prev:
             return self._record(pkt.t, "out_of_order",
                                 f"t = {pkt.t!r} is not after the previous t = {self.t_prev!r}")

@@ -213,7 +213,8 @@ def run_stream(source: Source, sink, sf: StreamingFilter, parser: PacketParser, 
                poll_s: float = 0.1) -> dict:
     """Read, filter and write until the source ends, ``max_packets`` packets were read,
     nothing arrived for ``idle_timeout`` seconds, or ``should_stop()``. Returns the count of
-    packets, of each status, and (``"faulty"``) of each column's faulty readings."""
+    packets, of each status, and (``"faulty"``) of each column's faulty readings by kind
+    (``"hall1_x_l railed": n``)."""
     import gc
 
     counts = {s: 0 for s in STATUSES}
@@ -239,8 +240,9 @@ def run_stream(source: Source, sink, sf: StreamingFilter, parser: PacketParser, 
             pkt = parser.empty("oversized", f"{item.n_bytes} bytes, limit {parser.max_bytes}")
         else:
             pkt = parser.check(item) if isinstance(item, Packet) else parser.parse(item)
-        for name in pkt.faulty:
-            faulty[name] = faulty.get(name, 0) + 1
+        for name, kind in (pkt.faults or dict.fromkeys(pkt.faulty, "faulty")).items():
+            key = f"{name} {kind}"
+            faulty[key] = faulty.get(key, 0) + 1
         rec = sf.push(pkt)
         counts[rec["status"]] += 1
         sink.write(rec)

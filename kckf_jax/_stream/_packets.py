@@ -16,15 +16,17 @@ import numpy as np
 
 from .._limits import SensorLimits
 from .._robot import Robot
+from .._screen import FAULT_KINDS, screen
 
 #: Every ``status`` an output line can carry (``kckf stream`` and ``export_loader.py`` alike).
 #: Used packets: ``ok`` (absent readings, a missing key, ``null`` or NaN, are missing
 #: readings, as an empty cell of ``sensors.csv``); ``masked`` (some readings were faulty: not
-#: a number, infinite, or outside the physical range (``SensorLimits``), and were treated as
-#: missing, ``note`` names them); ``gap`` (time jumped by more than the gap limit; ``gap``
-#: says whether the filter predicted across it or restarted). Skipped packets (the state is
-#: unchanged): ``malformed`` (not UTF-8 JSON, not an object), ``oversized``, ``missing_t``,
-#: ``bad_t`` (not a finite number), ``out_of_order`` (``t`` not after the previous packet's),
+#: a number, infinite, outside the physical range (``SensorLimits``) or not a measurement
+#: (railed, unreachable, saturated: ``_screen``), and were treated as missing, ``note`` names
+#: them and ``Packet.faults`` gives each column's kind); ``gap`` (time jumped by more than
+#: the gap limit; ``gap`` says whether the filter predicted across it or restarted).
+#: Skipped packets (the state is unchanged): ``malformed`` (not UTF-8 JSON, not an
+#: object), ``oversized``, ``missing_t``, ``bad_t`` (not a finite number), ``out_of_order`` (``t`` not after the previous packet's),
 #: ``rejected`` (the update was not finite).
 STATUSES = ("ok", "masked", "gap", "malformed", "oversized", "missing_t", "bad_t",
             "out_of_order", "rejected")
@@ -34,8 +36,11 @@ MAX_PACKET_BYTES = 8192
 
 @dataclass
 class Packet:
-    """One parsed packet: time (s, float64), readings (NaN = missing), status, note, and the
-    columns whose readings were faulty (``masked``)."""
+    """One parsed packet: time (s, float64), readings (NaN = missing), status, note, the
+    columns whose readings were faulty (``masked``) and ``{column: kind}`` for them
+    (``faults``; ``_screen.FAULT_KINDS``, or ``"not_a_number"``). ``screened``: the readings
+    are already as the filter uses them (``_screen.screen``: faulty ones missing, a missing
+    gyro stood in for), so ``StreamingFilter`` need not screen them again."""
 
     t: float | None
     gyro: np.ndarray
@@ -43,6 +48,8 @@ class Packet:
     status: str
     note: str = ""
     faulty: tuple[str, ...] = ()
+    faults: dict | None = None
+    screened: bool = False
 
 
 class PacketParser:
@@ -57,10 +64,15 @@ class PacketParser:
     """
 
     def __init__(self, robot: Robot, max_bytes: int = MAX_PACKET_BYTES,
-                 limits: SensorLimits = SensorLimits()):
+                 limits: SensorLimits = SensorLimits(), params=None):
+        """``params`` (``Params``, optional): screen every packet as the filter does
+        (``_screen.screen``: railed, unreachable and saturated readings named and masked, a
+        missing gyro stood in for); without it only the physical range is checked."""
         self.robot = robot
         self.max_bytes = max_bytes
-        self.limits = limits
+        self.limits = params.limits if params is not None else limits
+        self.params = params
+        limits = self.limits
         self._names = robot.gyro_names + robot.hall_names
         self._slots = set(self._names)
         self._G, self._M = len(robot.gyro_names), robot.n_hall
@@ -115,18 +127,38 @@ class PacketParser:
             return pkt
         arr = np.r_[pkt.gyro, pkt.hall_v].astype(np.float64)
         out = self.empty("ok", t=pkt.t)
-        return self._finish(out, arr, [], pkt.note, list(pkt.faulty))
+        out = self._finish(out, arr, [], "", list(pkt.faulty))
+        if pkt.status == "masked":
+            out.status = "masked"
+            out.faulty = tuple(dict.fromkeys(pkt.faulty + out.faulty))
+            out.faults = {**(pkt.faults or {}), **(out.faults or {})}
+        out.note = " | ".join(n for n in (pkt.note, out.note) if n)
+        return out
 
     def _finish(self, pkt: Packet, arr: np.ndarray, problems: list[tuple[int, str]],
                 extra: str = "", faulty: list[str] | None = None) -> Packet:
         """Mask the readings outside the physical range (absent ones, NaN, are missing and
         fine), fill ``pkt`` and set its status and note."""
-        bad = ~(np.isnan(arr) | ((arr >= self._lo) & (arr <= self._hi)))
-        problems = list(problems) + [(i, f"{self._names[i]} = {arr[i]:.6g} out of range")
-                                     for i in np.flatnonzero(bad)]
-        arr[bad] = np.nan
-        pkt.gyro[:] = arr[: self._G]
-        pkt.hall_v[:] = arr[self._G:]
+        kinds = {i: "not_a_number" for i, _ in problems}
+        if self.params is not None:
+            with np.errstate(invalid="ignore"):
+                used = screen(self.params, arr[: self._G], arr[self._G:], np)
+            codes = np.r_[used.gyro_code, used.hall_code]
+            for i in np.flatnonzero(codes):
+                kind = FAULT_KINDS[codes[i] - 1]
+                problems.append((i, f"{self._names[i]} = {arr[i]:.6g} {kind}"))
+                kinds[i] = kind
+            pkt.gyro[:] = used.gyro
+            pkt.hall_v[:] = used.hall_v
+            pkt.screened = True
+        else:
+            bad = ~(np.isnan(arr) | ((arr >= self._lo) & (arr <= self._hi)))
+            problems += [(i, f"{self._names[i]} = {arr[i]:.6g} out of range")
+                         for i in np.flatnonzero(bad)]
+            kinds.update((i, "out_of_range") for i in np.flatnonzero(bad))
+            arr[bad] = np.nan
+            pkt.gyro[:] = arr[: self._G]
+            pkt.hall_v[:] = arr[self._G:]
         notes = []
         if problems:
             pkt.status = "masked"
@@ -134,6 +166,7 @@ class PacketParser:
             notes.append("treated as missing: " + "; ".join(p for _, p in problems[:4]))
             pkt.faulty = tuple(dict.fromkeys((faulty or []) + [self._names[i]
                                                                for i, _ in problems]))
+            pkt.faults = {self._names[i]: k for i, k in sorted(kinds.items())}
         if extra:
             notes.append(extra)
         pkt.note = " | ".join(notes)

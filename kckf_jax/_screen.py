@@ -1,0 +1,154 @@
+"""Which readings the filter uses, and why not: one decision for every path, the stream and
+the exported step.
+
+A reading that cannot be a measurement is not used, and is named:
+
+* ``out_of_range``: beyond what its ADC or gyro can read (``SensorLimits``): a transmission
+  or logging fault;
+* ``railed``: a Hall reading at either end of its ADC's range (within ``SensorLimits.rail_v``):
+  a short or an open wire (a disconnected sensor reads 0 V), not a measurement;
+* ``unreachable``: a Hall reading whose angle through the sensor's curve (Eq. 1, the
+  parameters' coefficients) is beyond what a joint can reach (``SensorLimits.joint_range_rad``):
+  Eq. 1 turns a low voltage into an enormous angle (0.5 V is -3,279 deg with the paper's
+  coefficients), which the filter would otherwise weigh like any other reading;
+* ``saturated``: a gyro reading at its full scale (``SensorLimits.gyro_rad_s``): the true rate
+  may be larger.
+
+A reading that is not there (NaN) is missing, not faulty. Then a gyro channel the filters read
+whose reading is missing or faulty takes the reading of a gyro that measures the same rate
+(``Robot.gyro_stand_ins``: the same axis, on a link no joint about that axis separates from
+it), so its joints' rates come from the other links' gyros; only where no such gyro reads does
+the channel hold its last value (the kernel's ``gyro_hold``).
+
+Each decision looks at one row alone, so it is the same whether a row comes from a recording,
+a batch of trials or a live packet: ``screen`` works on any leading axes, on NumPy (the report
+and the packet parser: ``xp=np``) or JAX arrays (the kernel's ``plausible``, which every path
+calls). It is not differentiated: the decisions are constants of the parameters, and the
+curve is evaluated on ``stop_gradient``-ed coefficients.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._hall import hall_angle, hall_exponentials
+from ._limits import SATURATION_FRACTION
+
+#: The kinds of faulty reading, by code (``codes == k + 1`` is ``FAULT_KINDS[k]``; 0: used or
+#: missing).
+FAULT_KINDS = ("out_of_range", "railed", "unreachable", "saturated")
+OUT_OF_RANGE, RAILED, UNREACHABLE, SATURATED = 1, 2, 3, 4
+#: One line each, for people.
+FAULT_WORDS = {
+    "out_of_range": "outside the physical range",
+    "railed": "railed at an end of the ADC's range (a short or an open wire)",
+    "unreachable": "an angle through its curve no joint can reach",
+    "saturated": "at the gyro's full scale (saturated)",
+}
+
+
+class Screened(NamedTuple):
+    """``screen``'s result: the readings the filter uses (NaN: not used), and per reading the
+    fault code (0: used or missing; ``FAULT_KINDS``)."""
+
+    gyro: object
+    hall_v: object
+    gyro_code: object
+    hall_code: object
+
+
+def screen(params, gyro, hall_v, xp=jnp) -> Screened:
+    """The readings of ``gyro`` (``... G``) and ``hall_v`` (``... M``) the filter uses, and why
+    the others are not used.
+
+    ``params``: anything with ``robot``, ``limits`` and ``hall_coeffs`` (``Params``;
+    ``hall_coeffs=None`` leaves out the curve's check). ``xp``: ``np`` for host arrays
+    (float64 decisions), ``jnp`` inside the filters.
+    """
+    limits = params.limits
+    robot = params.robot
+    lo, hi = limits.hall_v
+    rail = limits.rail_v
+    g_abs = xp.abs(gyro)
+    g_code = xp.where(g_abs > limits.gyro_rad_s, OUT_OF_RANGE,
+                      xp.where(g_abs >= SATURATION_FRACTION * limits.gyro_rad_s, SATURATED, 0))
+    coeffs = params.hall_coeffs
+    if coeffs is None:
+        angle = xp.zeros_like(hall_v)
+    elif xp is np:
+        (w1, w2), (k1, k2) = hall_exponentials(*(np.asarray(c, np.float64) for c in coeffs))
+        finite_v = np.where(np.isfinite(hall_v), hall_v, 0.5 * (lo + hi))
+        with np.errstate(over="ignore", invalid="ignore"):
+            angle = w1 * np.exp(k1 * finite_v) + w2 * np.exp(k2 * finite_v)
+    else:
+        coeffs = tuple(jax.lax.stop_gradient(c) for c in coeffs)
+        finite_v = jnp.where(jnp.isfinite(hall_v), hall_v, 0.5 * (lo + hi))
+        angle = hall_angle(finite_v, *coeffs)
+    h_code = xp.where(
+        (hall_v < lo) | (hall_v > hi), OUT_OF_RANGE,
+        xp.where((hall_v <= lo + rail) | (hall_v >= hi - rail), RAILED,
+                 xp.where(xp.abs(angle) > limits.joint_range_rad, UNREACHABLE, 0)))
+    g_used = xp.where(g_code > 0, xp.nan, gyro)
+    h_used = xp.where(h_code > 0, xp.nan, hall_v)
+    g_used = _stand_in(robot, g_used, xp)
+    return Screened(g_used, h_used, g_code.astype(xp.int8), h_code.astype(xp.int8))
+
+
+def _stand_in(robot, gyro, xp):
+    """Every channel the filters read that has no reading takes its first stand-in's
+    (``Robot.gyro_stand_ins``) that has one."""
+    used = set(int(i) for i in robot.used_gyro_index)
+    cols = []
+    for c, mates in enumerate(robot.gyro_stand_ins):
+        col = gyro[..., c]
+        if c in used and mates:
+            fill = gyro[..., mates[-1]]
+            for m in reversed(mates[:-1]):
+                fill = xp.where(xp.isnan(gyro[..., m]), fill, gyro[..., m])
+            col = xp.where(xp.isnan(col), fill, col)
+        cols.append(col)
+    return xp.stack(cols, axis=-1)
+
+
+def fault_codes(params, gyro, hall_v, xp=jnp):
+    """Per reading (``... G + M``: ``Robot.gyro_names`` then ``Robot.hall_names``) the code of
+    why the filter does not use it (``screen``; 0: used or missing)."""
+    used = screen(params, gyro, hall_v, xp)
+    return xp.concatenate([used.gyro_code, used.hall_code], axis=-1)
+
+
+def fault_stretches(t, codes, names, join_s: float = 1.0) -> list[dict]:
+    """The faulty readings of one recording by column, kind and stretch of time: ``[{"column",
+    "kind", "from_s", "to_s", "count"}]`` (the ``"faults"`` of ``kckf evaluate --json``),
+    ordered by column then time. ``t`` (``T``, s), ``codes`` (``T x C``, ``fault_codes``),
+    ``names`` (``C`` column names). Faulty readings of one kind in one column less than
+    ``join_s`` apart are one stretch (a flickering sensor is one entry, not hundreds)."""
+    t = np.asarray(t, np.float64)
+    codes = np.asarray(codes)
+    out = []
+    for c in np.flatnonzero((codes != 0).any(axis=0)):
+        for code in np.unique(codes[:, c][codes[:, c] != 0]):
+            rows = np.flatnonzero(codes[:, c] == code)
+            breaks = np.flatnonzero(np.diff(t[rows]) > join_s) + 1
+            for part in np.split(rows, breaks):
+                out.append({"column": names[c], "kind": FAULT_KINDS[int(code) - 1],
+                            "from_s": float(t[part[0]]), "to_s": float(t[part[-1]]),
+                            "count": int(part.size)})
+    return out
+
+
+def describe_faults(name: str, stretches: list[dict], limit: int = 4) -> str | None:
+    """One line for people about a recording's faulty readings (``fault_stretches``), or
+    None when there are none."""
+    if not stretches:
+        return None
+    parts = [f"{f['column']} {f['kind']} at {f['from_s']:.6g}-{f['to_s']:.6g} s "
+             f"(x{f['count']})" for f in stretches[:limit]]
+    more = f" and {len(stretches) - limit} more" if len(stretches) > limit else ""
+    n = sum(f["count"] for f in stretches)
+    return (f"{name}: {n} faulty reading(s) not used: " + ", ".join(parts) + more
+            + " (docs/faults.md)")

@@ -1,0 +1,472 @@
+"""Set-up mistakes named before filtering: swapped Hall columns, a gyro of the wrong sign, a
+Hall curve that cannot be the sensor's (issue 33, item 8).
+
+Labs wire things wrong, and each of these mistakes shows in the first seconds of data: the
+Hall readings move against the gyros, or by the wrong amount. The filter cannot tell; it fuses
+what it is given. ``setup_check`` looks before it runs. NumPy float64 on the host, no JAX.
+
+Method
+------
+Over the first ``seconds`` of rows (the whole session if shorter):
+
+1. **Gyro angle.** For every gyro channel ``c`` the filters read, its integrated angle
+   ``G_c(k) = sum_{i <= k} dt(i) u_c(i - 1)`` (the kernel's convention: the rates of row
+   ``k - 1`` drive the step to ``k``); a missing or out-of-range reading holds the channel's
+   last value (as the kernel does), one before the first reading takes the first. Joint axis
+   ``j``'s gyro angle is ``G_plus(j) - G_minus(j)`` (``Robot.rate_pairs``, Eq. 2).
+2. **Hall angle.** Every Hall voltage through its curve (Eq. 1, ``params.hall_coeffs``);
+   readings outside the ADC's range or railed at either end are missing.
+3. **Detrending.** Both series are band-passed: a ``SMOOTH_S`` moving mean less a
+   ``HIGHPASS_S`` moving mean, both centred (missing Hall readings skipped). A constant gyro
+   bias integrates to a ramp, which a centred mean reproduces exactly, and a Hall curve's
+   offset is a constant, so neither survives (a slowly drifting bias is a ramp over one
+   window); the short mean cuts the Hall sensors' white noise, the same on both series so that
+   the slope is not biased. Rows whose window runs off the rows or spans a gap in the clock
+   (``GAP_FACTOR`` times its length) are left out. Differences over 0.5 s (the other
+   choice) keep 0.62 of a 0.2 Hz bend (this band-pass 0.77) and let a wearer's slow sway
+   through with lower correlations (0.81 against 0.91 at worst, over the same sessions).
+4. **Regression.** Each Hall sensor's band-passed angle on its joint axis's band-passed gyro
+   angle (least squares with an intercept): slope and correlation. The gyros are the
+   reference: their scale is right to about 1 %, and Hall noise sits in the regressand, where
+   it does not bias the slope. A sensor read through the right curve has slope ~ +1.
+
+A joint axis whose band-passed gyro angle has an RMS below ``MIN_MOTION_DEG`` did not move
+enough to judge: nothing is said about it (not even by the explanations below). A sensor is
+**consistent** when its slope is in ``[SLOPE_LO, SLOPE_HI]`` and its correlation at least
+``MIN_CORR``.
+
+Explanations are then tested by recomputing the regressions with the mistake undone, never
+guessed from the slopes' pattern alone:
+
+* ``gyro_sign`` (error): negating gyro channel ``g`` makes every moving joint axis whose rate
+  uses ``g`` consistent (a negated gyro of link ``L`` turns joint ``L - 1``'s rate into
+  ``-(theta' + 2 omega_{L-1})`` and joint ``L``'s into ``theta' + 2 omega_L``, both wrong;
+  a moving neighbour that reads the same channel and agrees rules ``g`` out).
+* ``swapped_columns`` (error): both sensors of a joint axis move against the gyros and, read
+  the other way round (each voltage through the other's curve), both are consistent. With the
+  paper's mirrored curves (``sign`` +1 for ``l``, -1 for ``r``) a swap reads ``-theta`` on
+  both sides: both slopes near -1.
+* Where both explain one joint axis (a swap of its columns or a negated gyro that no other
+  moving joint reads: the data say ``-theta`` against ``-(theta' + 2 omega)``), the better fit
+  wins when it leaves less than ``1 / DISTINCT_FACTOR`` of the other's unexplained variance;
+  otherwise ``swapped_or_gyro_sign`` (error) names both (the link below the joint did not
+  turn about that axis, so these rows cannot tell them apart).
+* ``bad_curve`` (warning): one sensor consistent, the other not (wrong scale, moving against
+  the gyros, or not following them): that sensor's curve (``meta.json``'s ``hall_models``)
+  or wiring.
+* ``unobservable`` (error): no sensor of the joint axis is consistent and nothing above
+  explains it: its absolute angle cannot be estimated from this data.
+
+A sensor with too few usable increments (missing, railed) is not judged here: the data checks
+name those readings.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+
+from ._hall import DEG, hall_exponentials
+from ._params import Params
+
+#: High-pass window, s: each series less its centred moving mean over this span. A gyro bias
+#: integrates to a ramp, which a centred mean reproduces exactly, and a Hall curve's offset is
+#: a constant: neither survives. Motion faster than about 0.15 Hz passes (the bench cycle is
+#: 0.7-1 Hz, bending 0.15-0.25 Hz: gain 0.77 at 0.2 Hz); the slow posture drift does not.
+HIGHPASS_S = 4.0
+#: Box smoothing before differencing, s: cuts the Hall sensors' white noise (about 1 deg a
+#: sample near neutral, several on a curve's flat side) by sqrt(10) at 100 Hz; the same box on
+#: both series keeps the slope unbiased.
+SMOOTH_S = 0.1
+#: A row whose high-pass window spans more than this many windows of clock (a gap) is left out.
+GAP_FACTOR = 1.5
+#: The RMS (deg) of a joint axis's gyro increments below which it did not move enough to judge:
+#: the Hall increments' noise after smoothing is about 0.5-2 deg, so a smaller motion gives
+#: slopes that are noise. Human bending sessions sway their non-bending axes by about this.
+MIN_MOTION_DEG = 2.0
+#: A consistent sensor's slope range: a factor 2.5 either way of the gyros' (symmetric in log).
+#: Clean data stay within about 0.7-1.4: per-sensor curve errors (10 % on a and c), the
+#: wearer's interaction shifts (up to 2 deg over 15 deg of bend) and the gyros' 1 % scale; the
+#: range leaves room for a real robot's unmodelled kinematics. A curve 10x off reads 3x or more.
+SLOPE_LO, SLOPE_HI = 0.4, 2.5
+#: The correlation a consistent sensor must reach, and that a wrong scale needs before it is
+#: called one. Clean data give 0.94 or more; an increment series contaminated by another
+#: link's motion (a wrong explanation tried) falls well below.
+MIN_CORR = 0.8
+#: A sensor needs this many usable increments (1 s of rows at 100 Hz) to be judged.
+MIN_PAIRS = 100
+#: When a swap and a gyro sign both explain one joint axis, the better must leave less than
+#: 1 / DISTINCT_FACTOR of the other's unexplained variance (1 - r^2) to be named alone.
+DISTINCT_FACTOR = 2.0
+#: Readings within this fraction of the ADC's span from either end are railed (a short or an
+#: open wire) and not used, as the filter's screening does.
+RAIL_FRACTION = 0.005
+
+Severity = Literal["warning", "error"]
+
+
+@dataclass(frozen=True)
+class SetupFinding:
+    """One set-up mistake found by ``setup_check``.
+
+    Attributes:
+        kind: ``"swapped_columns"``, ``"gyro_sign"``, ``"swapped_or_gyro_sign"``,
+            ``"bad_curve"`` or ``"unobservable"``.
+        columns: the ``sensors.csv`` columns at fault.
+        severity: ``"warning"`` (the filter runs, one sensor's angle is off) or ``"error"``
+            (some angle cannot be right).
+        message: one line naming the columns and what was measured.
+        fix: what to change.
+    """
+
+    kind: str
+    columns: tuple[str, ...]
+    severity: Severity
+    message: str
+    fix: str
+
+
+@dataclass(frozen=True)
+class _Fit:
+    """One sensor's regression on its joint axis's gyro increments."""
+
+    slope: float
+    corr: float
+    n: int
+
+    @property
+    def known(self) -> bool:
+        return self.n >= MIN_PAIRS and math.isfinite(self.slope) and math.isfinite(self.corr)
+
+    @property
+    def ok(self) -> bool:
+        return self.known and SLOPE_LO <= self.slope <= SLOPE_HI and self.corr >= MIN_CORR
+
+    @property
+    def against(self) -> bool:
+        return self.known and self.slope < 0.0
+
+    def unexplained(self) -> float:
+        """``1 - r^2``: the share of the Hall increments' variance the gyros do not explain."""
+        return 1.0 - self.corr**2 if self.known else 1.0
+
+    def words(self) -> str:
+        if not self.known:
+            return "too few readings"
+        return f"x{self.slope:.2f}, r {self.corr:.2f}"
+
+
+class _Data:
+    """The detrended increments of the first rows of a session (see the module docstring)."""
+
+    def __init__(self, session, params: Params, seconds: float):
+        robot = session.robot
+        self.robot = robot
+        t = np.asarray(session.t, np.float64)
+        keep = t - t[0] <= seconds if t.size else np.zeros(0, bool)
+        t = t[keep]
+        gyro = np.array(session.gyro[keep], np.float64)
+        volts = np.array(session.hall_v[keep], np.float64)
+        limits = params.limits
+        bad_g, bad_v = limits.outside(gyro, volts)
+        gyro[bad_g] = np.nan
+        lo, hi = limits.hall_v
+        rail = RAIL_FRACTION * (hi - lo)
+        railed = (volts <= lo + rail) | (volts >= hi - rail)
+        volts[bad_v | railed] = np.nan
+        self.volts = volts
+        self.coeffs = tuple(np.asarray(c, np.float64) for c in params.hall_coeffs)
+
+        T = t.size
+        dt = np.diff(t, prepend=t[:1]) if T else t
+        step = float(np.median(np.diff(t))) if T > 1 else 1.0
+        self.half = max(1, int(round(0.5 * HIGHPASS_S / step)))
+        self.box = 2 * int(round(0.5 * SMOOTH_S / step)) + 1
+        # Rows whose high-pass window lies inside the rows and spans no gap in the clock.
+        h = self.half
+        self.row_ok = np.zeros(T, bool)
+        if T > 2 * h:
+            span = t[2 * h:] - t[:-2 * h]
+            self.row_ok[h:T - h] = span <= GAP_FACTOR * max(HIGHPASS_S, 2 * h * step)
+
+        # Gyro angle per channel the joint axes read (hold the last reading; kernel timing).
+        J = robot.n_joint_axes
+        plus, minus = robot.rate_pairs
+        self.plus, self.minus = plus[:J], minus[:J]
+        self.channels = sorted({int(c) for c in np.concatenate([self.plus, self.minus])})
+        self.dG = {}
+        for c in self.channels:
+            u = _hold(gyro[:, c])
+            angle = np.concatenate([[0.0], np.cumsum(dt[1:] * u[:-1])]) if T else u
+            self.dG[c] = self._increments(angle)
+
+    def _increments(self, x: np.ndarray) -> np.ndarray:
+        """The band-passed ``x``: its ``SMOOTH_S`` box mean less its ``HIGHPASS_S`` box mean
+        (NaN skipped in a box; NaN where the short box is empty or the row is not usable)."""
+        d = _box(x, self.box) - _box(x, 2 * self.half + 1)
+        d[~self.row_ok] = np.nan
+        return d
+
+    def gyro_increments(self, j: int, flip: frozenset[int] = frozenset()) -> np.ndarray:
+        """Joint axis ``j``'s gyro angle increments, rad, the channels in ``flip`` negated."""
+        p, m = int(self.plus[j]), int(self.minus[j])
+        sp = -1.0 if p in flip else 1.0
+        sm = -1.0 if m in flip else 1.0
+        return sp * self.dG[p] - sm * self.dG[m]
+
+    def hall_increments(self, column: int, curve: int) -> np.ndarray:
+        """Hall column ``column``'s voltages read through sensor ``curve``'s Eq. 1, rad."""
+        a, b, c, d, sign = (x[curve] for x in self.coeffs)
+        (w1, w2), (k1, k2) = hall_exponentials(a, b, c, d, sign)
+        v = self.volts[:, column]
+        with np.errstate(over="ignore", invalid="ignore"):
+            angle = w1 * np.exp(k1 * v) + w2 * np.exp(k2 * v)
+        angle[~np.isfinite(angle)] = np.nan
+        return self._increments(angle)
+
+    def motion_deg(self, j: int) -> float:
+        x = self.gyro_increments(j)
+        x = x[np.isfinite(x)]
+        return float(np.std(x) / DEG) if x.size >= MIN_PAIRS else 0.0
+
+    def joint(self, j: int, flip: frozenset[int] = frozenset(),
+              swap: bool = False) -> tuple[_Fit, _Fit]:
+        """The fits of joint axis ``j``'s ``l`` and ``r`` sensors, with the gyro channels in
+        ``flip`` negated and, if ``swap``, each column read through the other's curve."""
+        x = self.gyro_increments(j, flip)
+        m_l, m_r = 2 * j, 2 * j + 1
+        cols = (m_r, m_l) if swap else (m_l, m_r)
+        return tuple(_fit(x, self.hall_increments(col, curve))
+                     for col, curve in zip(cols, (m_l, m_r)))
+
+
+def _hold(u: np.ndarray) -> np.ndarray:
+    """``u`` with every NaN replaced by the last finite value before it (the first finite
+    value before the first; zeros if there is none)."""
+    ok = np.isfinite(u)
+    if not ok.any():
+        return np.zeros_like(u)
+    idx = np.where(ok, np.arange(u.size), 0)
+    np.maximum.accumulate(idx, out=idx)
+    out = u[idx]
+    out[: int(np.argmax(ok))] = u[int(np.argmax(ok))]
+    return out
+
+
+def _box(x: np.ndarray, n: int) -> np.ndarray:
+    """The centred ``n``-row moving mean of ``x`` (rows ``k - n // 2 .. k + (n - 1) // 2``,
+    cut at the ends), NaNs skipped (NaN where all are)."""
+    if n <= 1:
+        return x.copy()
+    ok = np.isfinite(x)
+    s = np.concatenate([[0.0], np.cumsum(np.where(ok, x, 0.0))])
+    c = np.concatenate([[0], np.cumsum(ok)])
+    k = np.arange(x.size)
+    lo = np.clip(k - n // 2, 0, x.size)
+    hi = np.clip(k + (n - 1) // 2 + 1, 0, x.size)
+    count = c[hi] - c[lo]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(count > 0, (s[hi] - s[lo]) / np.maximum(count, 1), np.nan)
+
+
+def _fit(x: np.ndarray, y: np.ndarray) -> _Fit:
+    """Least squares ``y ~ slope x + c``: slope and correlation over the finite pairs."""
+    ok = np.isfinite(x) & np.isfinite(y)
+    n = int(ok.sum())
+    if n < MIN_PAIRS:
+        return _Fit(math.nan, math.nan, n)
+    xc = x[ok] - x[ok].mean()
+    yc = y[ok] - y[ok].mean()
+    sxx, syy, sxy = float(xc @ xc), float(yc @ yc), float(xc @ yc)
+    if sxx <= 0.0 or syy <= 0.0:
+        return _Fit(math.nan, math.nan, n)
+    return _Fit(sxy / sxx, sxy / math.sqrt(sxx * syy), n)
+
+
+def _consistent(fits: tuple[_Fit, _Fit]) -> bool:
+    return all(f.ok for f in fits)
+
+
+def _improves(before: tuple[_Fit, _Fit], after: tuple[_Fit, _Fit]) -> bool:
+    """Whether each sensor moved against the gyros before, or leaves ``DISTINCT_FACTOR``
+    times less unexplained after."""
+    return all(b.against or a.unexplained() * DISTINCT_FACTOR <= b.unexplained()
+               for b, a in zip(before, after))
+
+
+def _score(fits: tuple[_Fit, _Fit]) -> float:
+    """The larger unexplained share of a joint axis's two sensors (smaller is better)."""
+    return max(f.unexplained() for f in fits)
+
+
+def setup_check(session, params: Params | None = None,
+                seconds: float = 20.0) -> list[SetupFinding]:
+    """Set-up mistakes recognisable in the first ``seconds`` of a session.
+
+    Args:
+        session: a ``Session``.
+        params: whose Hall curves (``hall_coeffs``) turn voltages into angles and whose limits
+            say which readings are readings; default ``Params.paper_defaults`` with the
+            session's ``hall_models`` (and its own limits, if it states any).
+        seconds: how much of the start to look at, s.
+
+    Returns:
+        The findings (empty when nothing is wrong, or nothing moved enough to tell), joint axis
+        by joint axis; ``describe`` turns them into lines. The method is in the module
+        docstring.
+
+    Example:
+        >>> from kckf_jax import simulate
+        >>> setup_check(simulate("x,y", "cyclic", seed=1, duration_s=10.0))
+        []
+    """
+    robot = session.robot
+    if params is None:
+        params = Params.paper_defaults(robot, session.hall_models)
+        if session.limits is not None:
+            params = dataclasses.replace(params, limits=session.limits)
+    if params.robot != robot:
+        raise ValueError(f"setup_check: parameters are for robot {params.robot.spec!r} but the "
+                         f"session has {robot.spec!r}")
+    if not seconds > 0:
+        raise ValueError(f"setup_check: seconds must be positive, got {seconds!r}")
+    data = _Data(session, params, float(seconds))
+    J = robot.n_joint_axes
+    names = robot.joint_angle_names
+    hall = robot.hall_names
+    gyro_names = robot.gyro_names
+
+    moving = [j for j in range(J) if data.motion_deg(j) >= MIN_MOTION_DEG]
+    base = {j: data.joint(j) for j in moving}
+    wrong = {j for j in moving if not _consistent(base[j])}
+
+    # Negated gyro channels: every moving joint axis reading the channel must agree once it is
+    # negated; none that agreed before may agree far worse (so a moving neighbour that agrees
+    # as it is rules the channel out); and for some, both sensors must have moved against the
+    # gyros or follow them far more closely. A negated gyro blurs its joints' increments with
+    # twice a link's motion, which can leave a slope in range (a negated base gyro) but not the
+    # correlation. Rescaling alone is no evidence: where the base's motion follows the joint's
+    # (a wearer's pelvis tilts with the bend) a negated channel only rescales the increments,
+    # and could pass for a corrected curve.
+    gyro_fix: dict[int, tuple[list[int], dict[int, tuple[_Fit, _Fit]]]] = {}
+    for c in data.channels:
+        users = [j for j in moving if c in (int(data.plus[j]), int(data.minus[j]))]
+        if not users:
+            continue
+        flipped = {j: data.joint(j, flip=frozenset({c})) for j in users}
+        if not all(_consistent(f) for f in flipped.values()):
+            continue
+        if any(_score(flipped[j]) > DISTINCT_FACTOR * _score(base[j])
+               for j in users if j not in wrong):
+            continue  # a neighbour that agrees as it is agrees far worse negated
+        if any(_improves(base[j], flipped[j]) for j in users):
+            fixed = [j for j in users if j in wrong or _improves(base[j], flipped[j])]
+            gyro_fix[c] = (fixed, flipped)
+    # Swapped columns: both sensors against the gyros, both consistent read the other way.
+    swap_fix: dict[int, tuple[_Fit, _Fit]] = {}
+    for j in sorted(wrong):
+        if all(f.against for f in base[j]):
+            swapped = data.joint(j, swap=True)
+            if _consistent(swapped):
+                swap_fix[j] = swapped
+
+    findings: list[tuple[int, SetupFinding]] = []  # (the first joint axis it concerns, it)
+    explained: set[int] = set()
+    for c, (fixed, flipped) in gyro_fix.items():
+        rivals = [j for j in fixed if j in swap_fix]
+        if len(fixed) == 1 and rivals:
+            # One joint axis, two explanations: the better fit, or both named.
+            j = fixed[0]
+            s_gyro, s_swap = _score(flipped[j]), _score(swap_fix[j])
+            if s_swap * DISTINCT_FACTOR <= s_gyro:
+                continue  # the swap fits clearly better: named below
+            if s_gyro * DISTINCT_FACTOR > s_swap:
+                explained.add(j)
+                findings.append((j, _ambiguous(robot, j, c, base[j])))
+                continue
+        explained.update(fixed)
+        findings.append((min(fixed), _gyro_sign(robot, c, fixed, base, flipped)))
+    for j, swapped in swap_fix.items():
+        if j in explained:
+            continue
+        explained.add(j)
+        col_l, col_r = hall[2 * j], hall[2 * j + 1]
+        (bl, br), (sl, sr) = base[j], swapped
+        findings.append((j, SetupFinding(
+            "swapped_columns", (col_l, col_r), "error",
+            f"{col_l} and {col_r} move against the gyros of {names[j]} (slopes {bl.slope:.2f}, "
+            f"{br.slope:.2f}); exchanged, they follow them ({sl.slope:.2f}, {sr.slope:.2f})",
+            f"swap columns {col_l} and {col_r} in sensors.csv (or their hall_models)")))
+    for j in sorted(wrong):
+        if j in explained:
+            continue
+        fits = base[j]
+        cols = (hall[2 * j], hall[2 * j + 1])
+        good = [f.ok for f in fits]
+        if any(good) and fits[good.index(False)].known:
+            m = good.index(False)
+            f, other = fits[m], fits[1 - m]
+            wiring = f"the wiring of {cols[m]} and " if abs(f.corr) < MIN_CORR else ""
+            findings.append((j, SetupFinding(
+                "bad_curve", (cols[m],), "warning",
+                f"{cols[m]} {_how(f)} of {names[j]} ({f.words()}) while {cols[1 - m]} "
+                f"follows them (x{other.slope:.2f})",
+                f"check {wiring}hall_models[{cols[m]}] in meta.json (measured scale "
+                f"x{f.slope:.2f} of the gyros')")))
+        elif not any(good):
+            judged = tuple(col for col, f in zip(cols, fits) if f.known)
+            if not judged:
+                continue
+            gyros = f"{gyro_names[data.plus[j]]} - {gyro_names[data.minus[j]]}"
+            findings.append((j, SetupFinding(
+                "unobservable", cols, "error",
+                f"{names[j]}: neither {cols[0]} ({fits[0].words()}) nor {cols[1]} "
+                f"({fits[1].words()}) follows the gyros ({gyros}) and exchanging them does "
+                "not help: its absolute angle cannot be estimated from this data",
+                f"check the wiring of {cols[0]} and {cols[1]} and their hall_models in "
+                f"meta.json (and, if both are right, the gyros {gyros})")))
+    findings.sort(key=lambda jf: jf[0])
+    return [f for _, f in findings]
+
+
+def _how(f: _Fit) -> str:
+    if abs(f.corr) < MIN_CORR:
+        return "does not follow the gyros"
+    if f.slope < 0:
+        return "moves against the gyros"
+    return "reads a different scale from the gyros"
+
+
+def _gyro_sign(robot, c: int, fixed: list[int], base, flipped) -> SetupFinding:
+    names = robot.joint_angle_names
+    gname = robot.gyro_names[c]
+    before = ", ".join(f"{names[j]} x{base[j][0].slope:.2f}/x{base[j][1].slope:.2f}"
+                       for j in fixed)
+    after = ", ".join(f"x{flipped[j][0].slope:.2f}/x{flipped[j][1].slope:.2f}" for j in fixed)
+    return SetupFinding(
+        "gyro_sign", (gname,), "error",
+        f"{gname}: the Hall sensors disagree with the gyros ({before}, l/r slopes); with "
+        f"{gname} negated they agree ({after})",
+        f"negate {gname} (mounted the wrong way round)")
+
+
+def _ambiguous(robot, j: int, c: int, fits) -> SetupFinding:
+    names = robot.joint_angle_names
+    gname = robot.gyro_names[c]
+    col_l, col_r = robot.hall_names[2 * j], robot.hall_names[2 * j + 1]
+    return SetupFinding(
+        "swapped_or_gyro_sign", (col_l, col_r, gname), "error",
+        f"{col_l} and {col_r} move against the gyros of {names[j]} (slopes "
+        f"{fits[0].slope:.2f}, {fits[1].slope:.2f}); exchanging them or negating {gname} "
+        "explains it equally well (the link below did not turn about this axis)",
+        f"swap columns {col_l} and {col_r} in sensors.csv or negate {gname}; to tell which, "
+        "record a few seconds turning the link below the joint too")
+
+
+def describe(findings: list[SetupFinding]) -> list[str]:
+    """One line per finding, for stderr: severity, what was found, and the fix."""
+    return [f"setup {f.severity}: {f.message}; fix: {f.fix}" for f in findings]
