@@ -27,6 +27,8 @@ The public API (everything else lives in private modules; docs/architecture.md m
   ``shard_batch``;
 * live filtering and deployment: ``StreamingFilter``, ``PacketParser``, ``Packet``,
   ``STATUSES``, ``low_latency``, ``export_step``;
+* faulty readings (what the step does not use, and why): ``FAULT_KINDS``,
+  ``fault_stretches`` (``Estimate.faults`` by column, kind and time);
 * analysis: ``observability_ranks``;
 * the one process-wide setting it makes, on import (XLA's CPU while loops compiled as one
   kernel each): ``cpu_loops`` says what it did.
@@ -81,6 +83,8 @@ from ._run import filter_sessions as filter_sessions
 from ._run import run_filter as run_filter
 from ._run import session_params as session_params
 from ._run import session_series as session_series
+from ._screen import FAULT_KINDS as FAULT_KINDS
+from ._screen import fault_stretches as fault_stretches
 from ._session import Session as Session
 from ._session import SessionError as SessionError
 from ._session import align_mocap as align_mocap

@@ -16,8 +16,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._gaps import GapPolicy
+from ._health import init_health
 from ._kernel import estimated, init_state
 from ._params import _LEAVES, Params
+from ._screen import FAULT_KINDS
 from ._stream import stream_step_fn
 
 MAGIC = b"KCKF-JAXEXPORT/1\n"
@@ -36,14 +38,15 @@ def export_step(params: Params, path: str, method: str = "kckf", baked: bool = T
             parameters can be loaded without exporting again.
         gaps: the gap policy the loader applies (its defaults; ``kckf stream``'s rule).
 
-    The header also carries the physical limits of the readings (``params.limits``), so the
-    loader reports faulty readings as ``masked`` as ``kckf stream`` does (the exported step
-    itself treats them as missing).
+    The step judges every reading as ``kckf stream`` does (``_screen``, ``_health``: its
+    state carries the sensors' health) and its output ends with each reading's fault code, so
+    the loader names faulty readings (``masked``, by column and kind: the header's
+    ``fault_kinds``).
     """
     robot = params.robot
     dtype = params.log_q.dtype
-    fn, flatten, _ = stream_step_fn(params, method)
-    s0 = np.asarray(flatten(init_state(params, method)))
+    fn, flatten, _ = stream_step_fn(params, method, health=True)
+    s0 = np.asarray(flatten((init_state(params, method), init_health(robot, dtype))))
     x_size = 1 + 3 * robot.n_links + robot.n_hall
     spec_s = jax.ShapeDtypeStruct(s0.shape, dtype)
     spec_x = jax.ShapeDtypeStruct((x_size,), dtype)
@@ -71,6 +74,7 @@ def export_step(params: Params, path: str, method: str = "kckf", baked: bool = T
         "params": None if baked else leaves.tolist(),
         "param_leaves": [[n, k] for n, k in zip(_LEAVES, sizes)],
         "limits": params.limits.to_meta(),
+        "fault_kinds": list(FAULT_KINDS),
         "gaps": {"gap_s": gaps.gap_s, "on_gap": gaps.on_gap,
                  "max_predict_s": gaps.max_predict_s},
     }

@@ -47,6 +47,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from ._custom_types import BlockCov, BlockHall, BlockRates, BlockState, BlockValid
 from ._hall import hall_angle, hall_slope
+from ._health import screened_series
 from ._kalman import coordinate_update, symmetrise
 from ._model import (
     FILTER_METHODS,
@@ -73,6 +74,9 @@ class SensorSeries(eqx.Module):
     dt: Float[ArrayLike, "*T"]
     gyro: Float[ArrayLike, "*T G"]
     hall_v: Float[ArrayLike, "*T M"]
+    #: Whether the readings are already as the filter uses them (``plausible``'s result):
+    #: then ``plausible`` leaves them as they are, so each path screens its input once.
+    screened: bool = eqx.field(static=True, default=False)
 
 
 class FilterState(eqx.Module):
@@ -383,9 +387,18 @@ def plausible(params: Params, series: SensorSeries) -> SensorSeries:
     """``series`` (a row, a recording or a batch) as the filter uses it (``_screen.screen``):
     every reading that cannot be a measurement (outside ``params.limits``, a railed Hall
     sensor, an angle no joint reaches, a saturated gyro) made missing, and a missing gyro
-    reading taken from a gyro that measures the same rate (``Robot.gyro_stand_ins``)."""
-    used = screen(params, jnp.asarray(series.gyro), jnp.asarray(series.hall_v))
-    return SensorSeries(series.dt, used.gyro, used.hall_v)
+    reading taken from a gyro that measures the same rate (``Robot.gyro_stand_ins``). Given
+    a recording or a batch (a time axis), also the Hall sensors isolated over time
+    (``_health``: noisy or stuck) made missing; each path calls it once on its whole input,
+    the step on its row (where it changes nothing more)."""
+    if series.screened:
+        return series
+    gyro, hall_v = jnp.asarray(series.gyro), jnp.asarray(series.hall_v)
+    if jnp.ndim(series.dt) == 0:
+        used = screen(params, gyro, hall_v)
+        return SensorSeries(series.dt, used.gyro, used.hall_v)
+    gyro, hall_v, _ = screened_series(params, series.dt, gyro, hall_v)
+    return SensorSeries(series.dt, gyro, hall_v, screened=True)
 
 
 def scan_filter(
@@ -404,6 +417,7 @@ def scan_filter(
     check_method(method)
     if state is None:
         state = init_state(params, method)
+    series = plausible(params, series)
 
     def body(carry, row):
         return step(params, carry, row, method)
@@ -461,7 +475,7 @@ def pad_trials(series: list, length: int | None = None, what: str = "pad_series"
             raise ValueError(f"{what}: a trial has {x.shape[0]} rows, more than {T}")
         return np.pad(x, [(0, T - x.shape[0])] + [(0, 0)] * (x.ndim - 1), constant_values=fill)
 
-    names = [f.name for f in dataclasses.fields(series[0])]
+    names = [f.name for f in dataclasses.fields(series[0]) if not f.metadata.get("static")]
     return type(series[0])(**{n: np.stack([pad(getattr(s, n), 0.0 if n == "dt" else np.nan)
                                            for s in series]) for n in names})
 

@@ -85,6 +85,9 @@ def hall_nll(params: Params, series: SensorSeries, method: str = "kckf",
     batch = jax.tree_util.tree_map(jnp.asarray, series)
     if batch.dt.ndim == 1:
         batch = jax.tree_util.tree_map(lambda x: x[None], batch)
+    # Screened once (``plausible``: the readings the filter uses), for both kinds of term.
+    batch = plausible(params, jax.tree_util.tree_map(
+        lambda x: x.astype(params.log_q.dtype), batch))
     if lanes is None:
         lanes = batch.dt.shape[0] >= Lanes().min_trials
     if lanes:

@@ -7,6 +7,7 @@ At the edge with the CLI and the plots: it calls the core (``filter_sessions``,
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 
 import equinox as eqx
@@ -18,9 +19,11 @@ from ._likelihood import consistency, innovations
 from ._metrics import rmse_table
 from ._model import FILTER_METHODS
 from ._params import Params
-from ._run import filter_sessions, session_params, session_series
-from ._screen import OUT_OF_RANGE, describe_faults, fault_codes, fault_stretches
+from ._run import filter_sessions, series_faults, session_params, session_series
+from ._screen import OUT_OF_RANGE, describe_faults, fault_stretches
 from ._session import Session, split_at_gaps
+from ._setup_check import describe as describe_setup
+from ._setup_check import setup_check
 
 PAPER_TABLE_METHODS = ("gyro", "hall_l", "hall_r", "kf", "kckf")
 TABLE_LABELS = {"gyro": "Gyro", "hall_l": "Hall l", "hall_r": "Hall r", "kf": "Std KF",
@@ -31,17 +34,20 @@ def data_faults(sessions: Sequence[Session], params: Params | None = None,
                 gaps: GapPolicy = GapPolicy()) -> tuple[dict, list[str]]:
     """What is wrong with the data, before any filter runs: per session, the readings the
     filter does not use because they cannot be measurements (``_screen``: outside the
-    physical range, railed, unreachable, saturated), by column, kind and stretch of time, and
+    physical range, railed, unreachable, saturated) or that stopped following their joint
+    (``_health``: noisy, stuck), by column, kind and stretch of time, and
     the gaps in the sensor rows (and what the filter does across them). Returns the JSON form
     ``{"faults": {session: [{"column", "kind", "from_s", "to_s", "count"}]}, "out_of_range":
     {session: {column: {"count", "first_t_s"}}}, "gaps": {session: [gap, ...]}}`` (every
     session in ``"faults"``, an empty list when clean; the others only sessions with something
-    to say) and one line for people per finding."""
-    faults, out_of_range, gap_doc, lines = {}, {}, {}, []
+    to say), the set-up mistakes the first seconds show (``"setup"``: ``setup_check``; a
+    joint whose angle cannot be estimated is a ``ValueError`` naming it) and one line for
+    people per finding."""
+    faults, out_of_range, gap_doc, setup, lines = {}, {}, {}, {}, []
     for s, p in zip(sessions, session_params(sessions, params)):
         key = s.path or "session"
         names = s.robot.gyro_names + s.robot.hall_names
-        codes = fault_codes(p, s.gyro, s.hall_v, np)
+        codes = np.asarray(series_faults(p, session_series(s, p.log_q.dtype)))
         faults[key] = fault_stretches(s.t, codes, names)
         cols = {}
         for j in np.flatnonzero((codes == OUT_OF_RANGE).any(axis=0)):
@@ -52,11 +58,20 @@ def data_faults(sessions: Sequence[Session], params: Params | None = None,
         line = describe_faults(key, faults[key])
         if line:
             lines.append(line)
+        found = setup_check(s, p)
+        if found:
+            setup[key] = [dataclasses.asdict(f) for f in found]
+            lines += [f"{key}: {x}" for x in describe_setup(found)]
+            errors = [f for f in found if f.severity == "error"]
+            if errors:
+                raise ValueError(f"{key}: {errors[0].message}: its angle cannot be estimated "
+                                 f"from this data; {errors[0].fix}")
         found = find_gaps(s.t, gaps)
         if found:
             gap_doc[key] = [g.to_json() for g in found]
             lines.append(describe_gaps(key, found))
-    return {"faults": faults, "out_of_range": out_of_range, "gaps": gap_doc}, lines
+    return {"faults": faults, "setup": setup, "out_of_range": out_of_range,
+            "gaps": gap_doc}, lines
 
 
 def estimate_faults(sessions: Sequence[Session], method: str, estimates) -> list[str]:

@@ -17,6 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._gaps import GapPolicy
+from ._health import screened_series
 from ._kernel import (
     Estimate,
     FilterState,
@@ -28,7 +29,6 @@ from ._kernel import (
 )
 from ._params import Params
 from ._paths import AbstractPath, Auto, PathChoice, Segments, Sequential, as_path, is_traced
-from ._screen import fault_codes
 from ._session import Session, split_at_gaps
 from ._smooth import smooth_batch
 
@@ -103,12 +103,16 @@ def _named(est: Estimate, path: AbstractPath, params: Params, series: SensorSeri
     """``est`` with the path that ran, the angles' names and why each reading the filter did
     not use was not used (``Estimate.faults``: the step's own decision, ``_screen``)."""
     return dataclasses.replace(est, path=path.name, names=params.robot.angle_names,
-                               faults=_fault_codes(params, series.gyro, series.hall_v))
+                               faults=series_faults(params, series))
 
 
 @eqx.filter_jit
-def _fault_codes(params, gyro, hall_v):
-    return fault_codes(params, gyro, hall_v)
+def series_faults(params: Params, series: SensorSeries):
+    """``Estimate.faults`` of ``series`` (one recording or a batch): why each reading the
+    filter did not use was not used (``_screen.fault_codes``, with the sensors' health over
+    time)."""
+    return screened_series(params, jnp.asarray(series.dt), jnp.asarray(series.gyro),
+                           jnp.asarray(series.hall_v))[2]
 
 
 def _one(x):
@@ -267,7 +271,7 @@ def filter_sessions(
         batch = jax.tree_util.tree_map(lambda x, d=dtype_p: jnp.asarray(x, d), batch)
         if smooth:
             est = dataclasses.replace(smooth_batch(p, batch, method),
-                                      faults=_fault_codes(p, batch.gyro, batch.hall_v))
+                                      faults=series_faults(p, batch))
         else:
             est = filter_batch(p, batch, method, path)
         arrays = jax.tree_util.tree_map(np.asarray, est)

@@ -40,7 +40,7 @@ from ._limits import SATURATION_FRACTION
 
 #: The kinds of faulty reading, by code (``codes == k + 1`` is ``FAULT_KINDS[k]``; 0: used or
 #: missing).
-FAULT_KINDS = ("out_of_range", "railed", "unreachable", "saturated")
+FAULT_KINDS = ("out_of_range", "railed", "unreachable", "saturated", "noisy", "stuck")
 OUT_OF_RANGE, RAILED, UNREACHABLE, SATURATED = 1, 2, 3, 4
 #: One line each, for people.
 FAULT_WORDS = {
@@ -48,6 +48,8 @@ FAULT_WORDS = {
     "railed": "railed at an end of the ADC's range (a short or an open wire)",
     "unreachable": "an angle through its curve no joint can reach",
     "saturated": "at the gyro's full scale (saturated)",
+    "noisy": "changing far more than its joint moves (noise on the wire: _health)",
+    "stuck": "unchanged while its joint moves (_health)",
 }
 
 
@@ -61,13 +63,14 @@ class Screened(NamedTuple):
     hall_code: object
 
 
-def screen(params, gyro, hall_v, xp=jnp) -> Screened:
+def screen(params, gyro, hall_v, xp=jnp, stand_ins: bool = True) -> Screened:
     """The readings of ``gyro`` (``... G``) and ``hall_v`` (``... M``) the filter uses, and why
     the others are not used.
 
     ``params``: anything with ``robot``, ``limits`` and ``hall_coeffs`` (``Params``;
     ``hall_coeffs=None`` leaves out the curve's check). ``xp``: ``np`` for host arrays
-    (float64 decisions), ``jnp`` inside the filters.
+    (float64 decisions), ``jnp`` inside the filters. ``stand_ins=False``: no gyro stands in
+    for another (``_health`` does it after its own check of the gyros).
     """
     limits = params.limits
     robot = params.robot
@@ -94,11 +97,12 @@ def screen(params, gyro, hall_v, xp=jnp) -> Screened:
                  xp.where(xp.abs(angle) > limits.joint_range_rad, UNREACHABLE, 0)))
     g_used = xp.where(g_code > 0, xp.nan, gyro)
     h_used = xp.where(h_code > 0, xp.nan, hall_v)
-    g_used = _stand_in(robot, g_used, xp)
+    if stand_ins:
+        g_used = stand_in(robot, g_used, xp)
     return Screened(g_used, h_used, g_code.astype(xp.int8), h_code.astype(xp.int8))
 
 
-def _stand_in(robot, gyro, xp):
+def stand_in(robot, gyro, xp=jnp):
     """Every channel the filters read that has no reading takes its first stand-in's
     (``Robot.gyro_stand_ins``) that has one."""
     used = set(int(i) for i in robot.used_gyro_index)
@@ -116,7 +120,8 @@ def _stand_in(robot, gyro, xp):
 
 def fault_codes(params, gyro, hall_v, xp=jnp):
     """Per reading (``... G + M``: ``Robot.gyro_names`` then ``Robot.hall_names``) the code of
-    why the filter does not use it (``screen``; 0: used or missing)."""
+    why the filter does not use it, judging each row alone (``screen``; 0: used or
+    missing). ``_health.series_codes`` adds what only time shows."""
     used = screen(params, gyro, hall_v, xp)
     return xp.concatenate([used.gyro_code, used.hall_code], axis=-1)
 

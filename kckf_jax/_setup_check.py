@@ -39,26 +39,32 @@ Explanations are then tested by recomputing the regressions with the mistake und
 guessed from the slopes' pattern alone:
 
 * ``gyro_sign`` (error): negating gyro channel ``g`` makes every moving joint axis whose rate
-  uses ``g`` consistent (a negated gyro of link ``L`` turns joint ``L - 1``'s rate into
-  ``-(theta' + 2 omega_{L-1})`` and joint ``L``'s into ``theta' + 2 omega_L``, both wrong;
-  a moving neighbour that reads the same channel and agrees rules ``g`` out).
+  uses ``g`` consistent, leaves none that agreed far worse (a moving neighbour that reads the
+  same channel and agrees rules ``g`` out), and for some, both sensors moved against the gyros
+  before or follow them far more closely after (``DISTINCT_FACTOR``). A negated gyro of link
+  ``L`` turns joint ``L - 1``'s rate into ``-(theta' + 2 omega_{L-1})`` and joint ``L``'s into
+  ``theta' + 2 omega_L`` (``omega``: the link's own rate about that axis): the sign flips, or
+  (the base's gyro) the slope stays positive but the correlation drops. A negated channel
+  that only rescales (a wearer's pelvis tilts with the bend) is not taken for one.
 * ``swapped_columns`` (error): both sensors of a joint axis move against the gyros and, read
   the other way round (each voltage through the other's curve), both are consistent. With the
   paper's mirrored curves (``sign`` +1 for ``l``, -1 for ``r``) a swap reads ``-theta`` on
   both sides: both slopes near -1.
-* Where both explain one joint axis (a swap of its columns or a negated gyro that no other
-  moving joint reads: the data say ``-theta`` against ``-(theta' + 2 omega)``), the better fit
-  wins when it leaves less than ``1 / DISTINCT_FACTOR`` of the other's unexplained variance;
-  otherwise ``swapped_or_gyro_sign`` (error) names both (the link below the joint did not
-  turn about that axis, so these rows cannot tell them apart).
+* Where both explain one joint axis (a swap of its columns, and a negated gyro that no other
+  moving joint reads: a swap reads ``-theta`` against the gyros' ``theta'``, a negated upper
+  gyro ``theta`` against ``-(theta' + 2 omega)``, the same data when the lower link holds
+  still about that axis), the better fit wins when it leaves less than ``1 /
+  DISTINCT_FACTOR`` of the other's unexplained variance; otherwise ``swapped_or_gyro_sign``
+  (error) names both: these rows cannot tell them apart.
 * ``bad_curve`` (warning): one sensor consistent, the other not (wrong scale, moving against
-  the gyros, or not following them): that sensor's curve (``meta.json``'s ``hall_models``)
-  or wiring.
+  the gyros, not following them, or stuck at one reading): that sensor's curve
+  (``meta.json``'s ``hall_models``) or wiring.
 * ``unobservable`` (error): no sensor of the joint axis is consistent and nothing above
   explains it: its absolute angle cannot be estimated from this data.
 
-A sensor with too few usable increments (missing, railed) is not judged here: the data checks
-name those readings.
+A sensor with too few usable rows (missing, railed) is not judged here: the data checks
+name those readings. One stuck at a reading inside the range while its joint moves is judged
+(slope and correlation 0).
 """
 
 from __future__ import annotations
@@ -78,33 +84,41 @@ from ._params import Params
 #: a constant: neither survives. Motion faster than about 0.15 Hz passes (the bench cycle is
 #: 0.7-1 Hz, bending 0.15-0.25 Hz: gain 0.77 at 0.2 Hz); the slow posture drift does not.
 HIGHPASS_S = 4.0
-#: Box smoothing before differencing, s: cuts the Hall sensors' white noise (about 1 deg a
-#: sample near neutral, several on a curve's flat side) by sqrt(10) at 100 Hz; the same box on
-#: both series keeps the slope unbiased.
+#: The short moving mean, s: cuts the Hall sensors' white noise (about 1 deg a sample near
+#: neutral, several on a curve's flat side) by sqrt(11) at 100 Hz (an odd 11 rows); the same
+#: mean on both series keeps the slope unbiased.
 SMOOTH_S = 0.1
 #: A row whose high-pass window spans more than this many windows of clock (a gap) is left out.
 GAP_FACTOR = 1.5
-#: The RMS (deg) of a joint axis's gyro increments below which it did not move enough to judge:
-#: the Hall increments' noise after smoothing is about 0.5-2 deg, so a smaller motion gives
-#: slopes that are noise. Human bending sessions sway their non-bending axes by about this.
+#: The RMS (deg) of a joint axis's band-passed gyro angle below which it did not move enough to
+#: judge: the Hall angles' noise after smoothing is about 0.3-2 deg, so a smaller motion gives
+#: slopes of noise. A wearer's non-bending axes sway by 0.4-1.9 deg (not judged); the bent
+#: ones move 2-5 deg, the bench 5-14 deg.
 MIN_MOTION_DEG = 2.0
 #: A consistent sensor's slope range: a factor 2.5 either way of the gyros' (symmetric in log).
-#: Clean data stay within about 0.7-1.4: per-sensor curve errors (10 % on a and c), the
-#: wearer's interaction shifts (up to 2 deg over 15 deg of bend) and the gyros' 1 % scale; the
-#: range leaves room for a real robot's unmodelled kinematics. A curve 10x off reads 3x or more.
+#: Clean simulated data give 0.74-1.56 on the bench's motion and 0.54-1.85 at worst (a
+#: wearer's barely moving joints; 180 sessions of five layouts): per-sensor curve errors (10 %
+#: on a and c, the curve's slope differing most on its flat side), the wearer's interaction
+#: shifts (up to 2 deg over 10-15 deg of bend) and the gyros' 1 % scale; the range leaves room
+#: for a real robot's unmodelled kinematics. A coefficient 10x off reads 3-12x where the joint
+#: visits that side of the curve (a bend that stays on the other side shows only 1.5-2.8x).
 SLOPE_LO, SLOPE_HI = 0.4, 2.5
-#: The correlation a consistent sensor must reach, and that a wrong scale needs before it is
-#: called one. Clean data give 0.94 or more; an increment series contaminated by another
-#: link's motion (a wrong explanation tried) falls well below.
+#: The correlation a consistent sensor must reach. Clean simulated data give 0.92 or more over
+#: the same 180 sessions (0.99 on the bench's motion); a gyro angle blurred by another link's
+#: motion (a negated gyro, or a wrong explanation tried) falls to 0.6-0.86.
 MIN_CORR = 0.8
-#: A sensor needs this many usable increments (1 s of rows at 100 Hz) to be judged.
+#: A sensor needs this many usable rows (1 s at 100 Hz) to be judged.
 MIN_PAIRS = 100
-#: When a swap and a gyro sign both explain one joint axis, the better must leave less than
-#: 1 / DISTINCT_FACTOR of the other's unexplained variance (1 - r^2) to be named alone.
+#: "Far better" between two fits of one sensor or joint axis: less than 1 / DISTINCT_FACTOR of
+#: the other's unexplained variance (1 - r^2). A negated gyro must leave its joints' sensors
+#: this much better off (or have moved them against the gyros), and no agreeing neighbour this
+#: much worse; of a swap and a gyro sign that both explain one joint axis, the better is named
+#: alone only by this margin. A right explanation removes a whole link's motion from the gyro
+#: angle (1 - r^2 from 0.26-0.6 to 0.01-0.05 in simulation), far beyond it.
 DISTINCT_FACTOR = 2.0
-#: Readings within this fraction of the ADC's span from either end are railed (a short or an
-#: open wire) and not used, as the filter's screening does.
-RAIL_FRACTION = 0.005
+#: A Hall angle whose band-passed RMS is below this (rad) does not change at all: a stuck
+#: reading (rounding leaves ~1e-16), judged as following nothing (slope and correlation 0).
+STILL_RAD = 1e-9
 
 Severity = Literal["warning", "error"]
 
@@ -132,7 +146,7 @@ class SetupFinding:
 
 @dataclass(frozen=True)
 class _Fit:
-    """One sensor's regression on its joint axis's gyro increments."""
+    """One sensor's band-passed angle regressed on its joint axis's band-passed gyro angle."""
 
     slope: float
     corr: float
@@ -151,7 +165,7 @@ class _Fit:
         return self.known and self.slope < 0.0
 
     def unexplained(self) -> float:
-        """``1 - r^2``: the share of the Hall increments' variance the gyros do not explain."""
+        """``1 - r^2``: the share of the Hall angle's variance the gyros do not explain."""
         return 1.0 - self.corr**2 if self.known else 1.0
 
     def words(self) -> str:
@@ -161,7 +175,7 @@ class _Fit:
 
 
 class _Data:
-    """The detrended increments of the first rows of a session (see the module docstring)."""
+    """The band-passed angles of the first rows of a session (see the module docstring)."""
 
     def __init__(self, session, params: Params, seconds: float):
         robot = session.robot
@@ -175,7 +189,7 @@ class _Data:
         bad_g, bad_v = limits.outside(gyro, volts)
         gyro[bad_g] = np.nan
         lo, hi = limits.hall_v
-        rail = RAIL_FRACTION * (hi - lo)
+        rail = limits.rail_v  # railed: a short or an open wire (``SensorLimits``)
         railed = (volts <= lo + rail) | (volts >= hi - rail)
         volts[bad_v | railed] = np.nan
         self.volts = volts
@@ -198,38 +212,39 @@ class _Data:
         plus, minus = robot.rate_pairs
         self.plus, self.minus = plus[:J], minus[:J]
         self.channels = sorted({int(c) for c in np.concatenate([self.plus, self.minus])})
-        self.dG = {}
+        self.gyro = {}
         for c in self.channels:
             u = _hold(gyro[:, c])
             angle = np.concatenate([[0.0], np.cumsum(dt[1:] * u[:-1])]) if T else u
-            self.dG[c] = self._increments(angle)
+            self.gyro[c] = self._band(angle)
 
-    def _increments(self, x: np.ndarray) -> np.ndarray:
+    def _band(self, x: np.ndarray) -> np.ndarray:
         """The band-passed ``x``: its ``SMOOTH_S`` box mean less its ``HIGHPASS_S`` box mean
         (NaN skipped in a box; NaN where the short box is empty or the row is not usable)."""
         d = _box(x, self.box) - _box(x, 2 * self.half + 1)
         d[~self.row_ok] = np.nan
         return d
 
-    def gyro_increments(self, j: int, flip: frozenset[int] = frozenset()) -> np.ndarray:
-        """Joint axis ``j``'s gyro angle increments, rad, the channels in ``flip`` negated."""
+    def gyro_band(self, j: int, flip: frozenset[int] = frozenset()) -> np.ndarray:
+        """Joint axis ``j``'s band-passed gyro angle, rad, the channels in ``flip`` negated."""
         p, m = int(self.plus[j]), int(self.minus[j])
         sp = -1.0 if p in flip else 1.0
         sm = -1.0 if m in flip else 1.0
-        return sp * self.dG[p] - sm * self.dG[m]
+        return sp * self.gyro[p] - sm * self.gyro[m]
 
-    def hall_increments(self, column: int, curve: int) -> np.ndarray:
-        """Hall column ``column``'s voltages read through sensor ``curve``'s Eq. 1, rad."""
+    def hall_band(self, column: int, curve: int) -> np.ndarray:
+        """Hall column ``column``'s voltages through sensor ``curve``'s Eq. 1, band-passed,
+        rad."""
         a, b, c, d, sign = (x[curve] for x in self.coeffs)
         (w1, w2), (k1, k2) = hall_exponentials(a, b, c, d, sign)
         v = self.volts[:, column]
         with np.errstate(over="ignore", invalid="ignore"):
             angle = w1 * np.exp(k1 * v) + w2 * np.exp(k2 * v)
         angle[~np.isfinite(angle)] = np.nan
-        return self._increments(angle)
+        return self._band(angle)
 
     def motion_deg(self, j: int) -> float:
-        x = self.gyro_increments(j)
+        x = self.gyro_band(j)
         x = x[np.isfinite(x)]
         return float(np.std(x) / DEG) if x.size >= MIN_PAIRS else 0.0
 
@@ -237,10 +252,10 @@ class _Data:
               swap: bool = False) -> tuple[_Fit, _Fit]:
         """The fits of joint axis ``j``'s ``l`` and ``r`` sensors, with the gyro channels in
         ``flip`` negated and, if ``swap``, each column read through the other's curve."""
-        x = self.gyro_increments(j, flip)
+        x = self.gyro_band(j, flip)
         m_l, m_r = 2 * j, 2 * j + 1
         cols = (m_r, m_l) if swap else (m_l, m_r)
-        return tuple(_fit(x, self.hall_increments(col, curve))
+        return tuple(_fit(x, self.hall_band(col, curve))
                      for col, curve in zip(cols, (m_l, m_r)))
 
 
@@ -282,8 +297,10 @@ def _fit(x: np.ndarray, y: np.ndarray) -> _Fit:
     xc = x[ok] - x[ok].mean()
     yc = y[ok] - y[ok].mean()
     sxx, syy, sxy = float(xc @ xc), float(yc @ yc), float(xc @ yc)
-    if sxx <= 0.0 or syy <= 0.0:
+    if sxx <= 0.0:
         return _Fit(math.nan, math.nan, n)
+    if syy <= n * STILL_RAD**2:
+        return _Fit(0.0, 0.0, n)  # a reading that does not change while the gyros do: stuck
     return _Fit(sxy / sxx, sxy / math.sqrt(sxx * syy), n)
 
 
@@ -311,7 +328,8 @@ def setup_check(session, params: Params | None = None,
         session: a ``Session``.
         params: whose Hall curves (``hall_coeffs``) turn voltages into angles and whose limits
             say which readings are readings; default ``Params.paper_defaults`` with the
-            session's ``hall_models`` (and its own limits, if it states any).
+            session's ``hall_models``. A session that states its limits has them either way
+            (as ``session_params`` does).
         seconds: how much of the start to look at, s.
 
     Returns:
@@ -327,11 +345,11 @@ def setup_check(session, params: Params | None = None,
     robot = session.robot
     if params is None:
         params = Params.paper_defaults(robot, session.hall_models)
-        if session.limits is not None:
-            params = dataclasses.replace(params, limits=session.limits)
     if params.robot != robot:
         raise ValueError(f"setup_check: parameters are for robot {params.robot.spec!r} but the "
                          f"session has {robot.spec!r}")
+    if session.limits is not None:  # the session's hardware, as for the filter
+        params = dataclasses.replace(params, limits=session.limits)
     if not seconds > 0:
         raise ValueError(f"setup_check: seconds must be positive, got {seconds!r}")
     data = _Data(session, params, float(seconds))
@@ -347,10 +365,10 @@ def setup_check(session, params: Params | None = None,
     # Negated gyro channels: every moving joint axis reading the channel must agree once it is
     # negated; none that agreed before may agree far worse (so a moving neighbour that agrees
     # as it is rules the channel out); and for some, both sensors must have moved against the
-    # gyros or follow them far more closely. A negated gyro blurs its joints' increments with
+    # gyros or follow them far more closely. A negated gyro blurs its joints' gyro angles with
     # twice a link's motion, which can leave a slope in range (a negated base gyro) but not the
     # correlation. Rescaling alone is no evidence: where the base's motion follows the joint's
-    # (a wearer's pelvis tilts with the bend) a negated channel only rescales the increments,
+    # (a wearer's pelvis tilts with the bend) a negated channel only rescales the gyro angle,
     # and could pass for a corrected curve.
     gyro_fix: dict[int, tuple[list[int], dict[int, tuple[_Fit, _Fit]]]] = {}
     for c in data.channels:
@@ -425,7 +443,7 @@ def setup_check(session, params: Params | None = None,
             findings.append((j, SetupFinding(
                 "unobservable", cols, "error",
                 f"{names[j]}: neither {cols[0]} ({fits[0].words()}) nor {cols[1]} "
-                f"({fits[1].words()}) follows the gyros ({gyros}) and exchanging them does "
+                f"({fits[1].words()}) agrees with the gyros ({gyros}) and exchanging them does "
                 "not help: its absolute angle cannot be estimated from this data",
                 f"check the wiring of {cols[0]} and {cols[1]} and their hall_models in "
                 f"meta.json (and, if both are right, the gyros {gyros})")))

@@ -36,6 +36,7 @@ from ._kernel import (
     init_state,
     init_states,
     kalman_step_moments,
+    plausible,
 )
 from ._model import FILTER_METHODS, structure
 from ._params import Params
@@ -53,7 +54,8 @@ def filter_moments(params: Params, series: SensorSeries, method: str,
     Nz``) and the ``StepMoments`` per row."""
     state = init_state(params, method) if state is None else state
     dtype = state.z.dtype
-    series = jax.tree_util.tree_map(lambda x: jnp.asarray(x).astype(dtype), series)
+    series = plausible(params, jax.tree_util.tree_map(lambda x: jnp.asarray(x).astype(dtype),
+                                                      series))
 
     @jax.checkpoint
     def body(carry, row):

@@ -57,10 +57,9 @@ def _read_sessions(paths: Sequence[str], require_mocap: bool = False, args=None)
 
 
 def _gaps(args):
-    """The gap policy of ``--gap`` and ``--on-gap`` (the same for every command)."""
+    """The gap policy of ``--gap``, ``--on-gap``, ``--max-predict`` (the same everywhere)."""
     from ._gaps import GapPolicy
-
-    return GapPolicy(gap_s=args.gap, on_gap=args.on_gap)
+    return GapPolicy(gap_s=args.gap, on_gap=args.on_gap, max_predict_s=args.max_predict)
 
 
 def _warn(args, lines: Sequence[str]) -> None:
@@ -282,7 +281,8 @@ def cmd_stream(args) -> int:
     if limits is not None:  # the recording's own statement about its hardware
         params = dataclasses.replace(params, limits=limits)
     gaps = _gaps(args)
-    sf = StreamingFilter(params, method, gap_s=gaps.gap_s, on_gap=gaps.on_gap)
+    sf = StreamingFilter(params, method, gap_s=gaps.gap_s, on_gap=gaps.on_gap,
+                         max_predict_s=gaps.max_predict_s)
     sf.warmup()  # compiled before the source opens: no early packet waits for XLA
     source = open_source(args.source, session, realtime=args.realtime)
     sink = open_sink(args.sink, flush=session is None or args.realtime)
@@ -426,6 +426,8 @@ def _data_options(p: argparse.ArgumentParser, plausibility: bool = True) -> None
                    help=f"seconds between rows that count as a gap (default {d.gap_s:g})")
     p.add_argument("--on-gap", choices=("predict", "restart"), default=d.on_gap,
                    help="predict across a gap (default) or restart the filter after it")
+    p.add_argument("--max-predict", type=float, default=None, metavar="SEC",
+                   help="a longer gap restarts even with --on-gap predict (default 1 s)")
     if plausibility:
         p.add_argument("--accept-implausible", action="store_true",
                        help="read a session whose time step disagrees with sample_rate_hz or "
@@ -463,13 +465,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="seeds the robot itself (Hall curves, gyro scale errors; default: "
                         "--seed): sessions with one device seed are trials of one robot")
     s.add_argument("--fault", action="append", default=[], metavar="SPEC",
-                   help="write a sensor fault (repeatable): KIND:COLUMN[@FROM-TO][=SIZE] or "
-                        "gap@FROM-TO; @FROM runs to the end, @-TO from the start, no span "
-                        "means the whole session, no size the kind's default. Kinds: "
-                        "disconnect, short, flicker, coeff (Hall column), swap (joint axis, "
-                        "e.g. hall1_x), noise, stuck, dropout (Hall or gyro), clip, bias_step, "
-                        "blank, sign (gyro), gap (no column). E.g. "
-                        "disconnect:hall1_x_l@20-30, clip:gyro2_x=2.0 (docs/simulator.md)")
+                   help="write a sensor fault (repeatable): KIND:COLUMN[@FROM-TO][=SIZE] "
+                        "or gap@FROM-TO (docs/simulator.md, 'Faults on request')")
     s.set_defaults(func=cmd_simulate)
 
     f = sub.add_parser("filter", parents=[common], help="run one filter over a session")

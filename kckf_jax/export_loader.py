@@ -80,6 +80,7 @@ class ExportedStep:
     def reset(self) -> None:
         self.state = jax.device_put(np.asarray(self.header["initial_state"], self.dtype))
         self.t_prev = None
+        self.codes = np.zeros(0, int)
 
     def _step(self, dt: float, readings: np.ndarray):
         self._x[0] = dt
@@ -88,10 +89,14 @@ class ExportedStep:
                                                                    self._x)
         state, out = self._call(*args)
         out = np.asarray(out)
-        if out[-1] < 0.5:
+        K = len(self.header["angle_names"])
+        if out[2 * K] < 0.5:
             return None
         self.state = state
-        return out[: len(self.header["angle_names"])]
+        # Each reading's fault code (the step's own judgement: railed, unreachable, saturated,
+        # a Hall sensor isolated over time; 0 for a used or missing one).
+        self.codes = out[2 * K + 1:].astype(int)
+        return out[:K]
 
     def push_array(self, t: float, readings: np.ndarray) -> np.ndarray | None:
         """Angles (rad, ``header["angle_names"]`` order) after the packet at ``t``, or None
@@ -148,6 +153,10 @@ class ExportedStep:
 
     def _record(self, t: float, x: np.ndarray, faulty: list) -> dict:
         angles, status, extra = self._push(t, x)
+        if angles is not None:
+            kinds = self.header.get("fault_kinds", [])
+            faulty = sorted(faulty + [(int(i), f"{self.names[i]} {kinds[c - 1]}")
+                                      for i, c in enumerate(self.codes) if 0 < c <= len(kinds)])
         rec: dict = {"t": t}
         if angles is not None:
             rec.update({n: float(a) for n, a, e in zip(self.header["angle_names"], angles,

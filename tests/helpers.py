@@ -7,7 +7,7 @@ import os
 import jax.numpy as jnp
 import numpy as np
 
-from kckf_jax import Params, Robot, SensorSeries
+from kckf_jax import Params, Robot, SensorSeries, _health
 
 DEG = np.pi / 180
 
@@ -20,7 +20,11 @@ def reference_params(params: Params) -> dict:
                      "p0_bias")}
     out.update(a=a, b=b, c=c, d=d, sign=sign, hall_noise=params.hall_noise,
                hall_v_range=params.limits.hall_v, gyro_range_rad_s=params.limits.gyro_rad_s,
-               joint_range_rad=params.limits.joint_range_rad)
+               joint_range_rad=params.limits.joint_range_rad,
+               health={k: getattr(_health, k) for k in (
+                   "CLIP_REPEATS", "CLIP_MIN_RAD_S", "RESTART_S", "MOTION_FRACTION",
+                   "MOTION_FLOOR_RAD", "ROUGH_TAU_S", "ROUGH_HIGH", "ROUGH_LOW", "STUCK_S",
+                   "STUCK_MOVE_RAD", "READMIT_S", "REF_TAU_S")})
     return out
 
 

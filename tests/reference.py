@@ -209,16 +209,13 @@ def _dt(t):
     return dt
 
 
-def usable_readings(joints, gyro, hall_v, params):
-    """The readings the filter may use (the session format's rules, written here again):
+def _row_rules(joints, gyro, hall_v, params):
+    """Readings that cannot be measurements, judged one by one (the session format's rules):
 
     * a Hall voltage outside ``params["hall_v_range"]``, or within 0.5 % of its span of
       either end (a railed ADC), or whose Eq. 1 angle exceeds ``params["joint_range_rad"]``
       in magnitude, is not a measurement;
-    * a gyro rate at 99.9 % of ``params["gyro_range_rad_s"]`` or beyond is saturated;
-    * then a gyro channel that a rate uses (Eq. 2) and that has no reading takes the reading
-      of the nearest link turning with it about that axis (no joint about that axis in
-      between, the lower link first at equal distance), if that one has one.
+    * a gyro rate at 99.9 % of ``params["gyro_range_rad_s"]`` or beyond is saturated.
     """
     L = layout(joints)
     gyro = np.array(gyro, dtype=float)
@@ -235,31 +232,147 @@ def usable_readings(joints, gyro, hall_v, params):
         hall_v[bad, m] = np.nan
     with np.errstate(invalid="ignore"):
         gyro[np.abs(gyro) >= 0.999 * full] = np.nan
+    return gyro, hall_v
+
+
+def _stand_in_order(joints):
+    """Per gyro column a rate uses (Eq. 2), the columns that measure the same rate: the same
+    axis on the links reached without crossing a joint about that axis, nearest first (the
+    lower link first at equal distance)."""
+    L = layout(joints)
     n = L["n"]
     used = set(L["rate_plus"]) | set(L["rate_minus"])
-    cols = []
-    for c in range(L["n_gyro"]):
+    order = {}
+    for c in used:
         link, a = c // 3 + 1, AXES[c % 3]
-        col = gyro[:, c].copy()
-        if c in used:
-            # Candidate links, nearest first; walking stops at a joint about axis a.
-            down, up = [], []
-            k = link
-            while k > 1 and a not in joints[k - 2]:  # joint k-1 joins links k-1 and k
-                k -= 1
-                down.append(k)
-            k = link
-            while k < n + 1 and a not in joints[k - 1]:  # joint k joins links k and k+1
-                k += 1
-                up.append(k)
-            order = []
-            for d in range(max(len(down), len(up))):
-                order += down[d:d + 1] + up[d:d + 1]
-            for other in order:
-                src = gyro[:, 3 * (other - 1) + AXES.index(a)]
-                col = np.where(np.isnan(col), src, col)
-        cols.append(col)
-    return np.stack(cols, axis=1), hall_v
+        down, up = [], []
+        k = link
+        while k > 1 and a not in joints[k - 2]:  # joint k-1 joins links k-1 and k
+            k -= 1
+            down.append(k)
+        k = link
+        while k < n + 1 and a not in joints[k - 1]:  # joint k joins links k and k+1
+            k += 1
+            up.append(k)
+        links = []
+        for d in range(max(len(down), len(up))):
+            links += down[d:d + 1] + up[d:d + 1]
+        order[c] = [3 * (other - 1) + AXES.index(a) for other in links]
+    return order
+
+
+def usable_readings(joints, t, gyro, hall_v, params):
+    """The readings the filter may use: ``_row_rules``, then over time (``params["health"]``:
+    the monitor's constants, by name):
+
+    * a gyro reading equal to the channel's last CLIP_REPEATS readings, at 90 % or more of the
+      largest magnitude the channel has read and at least CLIP_MIN_RAD_S, is clipped: not used;
+    * a gyro column a rate uses without a reading takes its first stand-in's
+      (``_stand_in_order``); the rates below hold a column's last value;
+    * every joint axis has a reference angle: set from the mean of its used Hall angles where
+      it starts (the first row, or after a step longer than RESTART_S), else the joint rate
+      from the gyros integrated and pulled towards that mean by min(1, dt / REF_TAU_S);
+    * every Hall sensor's residual against the reference changes from one reading to its
+      next by (Hall angle change) - dt * (joint rate); squared, divided by 2 (slope sigma_v)^2
+      + (MOTION_FRACTION |dt rate| + MOTION_FLOOR_RAD)^2, averaged with weight
+      min(1, dt / ROUGH_TAU_S), it is the roughness; above ROUGH_HIGH the sensor is isolated;
+    * a sensor whose voltage is unchanged for STUCK_S while the joint moved STUCK_MOVE_RAD is
+      isolated;
+    * an isolated sensor is used again once calm (roughness below ROUGH_LOW, not stuck, read)
+      for READMIT_S.
+    """
+    L = layout(joints)
+    J, M, G = L["J"], L["M"], L["n_gyro"]
+    H = params["health"]
+    gyro, hall_v = _row_rules(joints, gyro, hall_v, params)
+    order = _stand_in_order(joints)
+    dt = _dt(t)
+    T_len = len(t)
+    g_out, v_out = np.full_like(gyro, np.nan), hall_v.copy()
+    g_last, g_rep, g_peak = np.full(G, np.nan), np.zeros(G), np.zeros(G)
+    hold = np.zeros(G)
+    ref, ref_ok = np.zeros(J), np.zeros(J, bool)
+    last_v, last_e = np.full(M, np.nan), np.full(M, np.nan)
+    rough, still, moved = np.zeros(M), np.zeros(M), np.zeros(M)
+    iso, calm = np.zeros(M, bool), np.zeros(M)
+    for k in range(T_len):
+        g = gyro[k].copy()
+        for c in range(G):
+            if np.isfinite(g[c]):
+                g_rep[c] = g_rep[c] + 1 if g[c] == g_last[c] else 0
+                g_peak[c] = max(g_peak[c], abs(g[c]))
+                g_last[c] = g[c]
+                if (g_rep[c] >= H["CLIP_REPEATS"] and abs(g[c]) >= 0.9 * g_peak[c]
+                        and abs(g[c]) >= H["CLIP_MIN_RAD_S"]):
+                    g[c] = np.nan
+            else:
+                g_rep[c] = 0
+        used = g.copy()
+        for c, mates in order.items():
+            if np.isnan(used[c]):
+                for other in mates:
+                    if not np.isnan(g[other]):
+                        used[c] = g[other]
+                        break
+        g_out[k] = used
+        hold = np.where(np.isnan(used), hold, used)
+        rate = hold[L["rate_plus"][:J]] - hold[L["rate_minus"][:J]]
+        gap = dt[k] > H["RESTART_S"]
+        fresh = [gap or not ref_ok[j] for j in range(J)]
+        for j in range(J):
+            if not gap:
+                ref[j] += dt[k] * rate[j]
+        angle = np.full(M, np.nan)
+        use = np.zeros(M, bool)
+        for m in range(M):
+            j = L["sensor_joint_axis"][m]
+            V = hall_v[k, m]
+            move = abs(dt[k] * rate[j])
+            if not np.isfinite(V):
+                if fresh[j]:
+                    rough[m], last_e[m] = 0.0, np.nan
+                still[m], moved[m], calm[m], last_v[m] = 0.0, 0.0, 0.0, np.nan
+                continue
+            angle[m] = hall_angle(V, params, m)
+            e = angle[m] - ref[j]
+            if np.isfinite(last_e[m]) and not fresh[j]:
+                sv = hall_slope(V, params, m) * float(np.asarray(params["sigma_hall_v"])[m])
+                expect = 2 * sv**2 + (H["MOTION_FRACTION"] * move + H["MOTION_FLOOR_RAD"])**2
+                z = (e - last_e[m]) ** 2 / expect
+                rough[m] += min(1.0, dt[k] / H["ROUGH_TAU_S"]) * (z - rough[m])
+            elif fresh[j]:
+                rough[m] = 0.0
+            if V == last_v[m]:
+                still[m] += dt[k]
+                moved[m] += move
+            else:
+                still[m], moved[m] = 0.0, 0.0
+            stuck = (V == last_v[m]) and still[m] >= H["STUCK_S"] and \
+                moved[m] >= H["STUCK_MOVE_RAD"]
+            noisy = rough[m] > H["ROUGH_HIGH"]
+            if iso[m] and not noisy and not stuck and rough[m] < H["ROUGH_LOW"]:
+                calm[m] += dt[k]
+            else:
+                calm[m] = 0.0
+            iso[m] = (iso[m] and calm[m] < H["READMIT_S"]) or noisy or stuck
+            use[m] = not iso[m]
+            last_v[m] = V
+        for j in range(J):
+            mine = [angle[m] for m in range(M) if L["sensor_joint_axis"][m] == j and use[m]]
+            if mine:
+                mean = float(np.mean(mine))
+                if fresh[j]:
+                    ref[j] = mean
+                else:
+                    ref[j] += min(1.0, dt[k] / H["REF_TAU_S"]) * (mean - ref[j])
+            ref_ok[j] = (ref_ok[j] and not gap) or bool(mine)
+        for m in range(M):
+            j = L["sensor_joint_axis"][m]
+            if np.isfinite(angle[m]):
+                last_e[m] = angle[m] - ref[j]
+            if not use[m]:
+                v_out[k, m] = np.nan
+    return g_out, v_out
 
 
 def _update_hold(hold, row):
@@ -282,7 +395,7 @@ def reference_filter(joints, t, gyro, hall_v, params, method) -> dict:
     K, N, M = L["K"], L["N"], L["M"]
     t = np.asarray(t, dtype=float)
     gyro = np.asarray(gyro, dtype=float)
-    gyro, hall_v = usable_readings(joints, gyro, hall_v, params)
+    gyro, hall_v = usable_readings(joints, t, gyro, hall_v, params)
     T_len = t.shape[0]
     assert gyro.shape == (T_len, L["n_gyro"])
     assert hall_v.shape == (T_len, M)
@@ -351,7 +464,7 @@ def reference_baseline(joints, t, gyro, hall_v, params, method) -> np.ndarray:
     J, K = L["J"], L["K"]
     t = np.asarray(t, dtype=float)
     gyro = np.asarray(gyro, dtype=float)
-    gyro, hall_v = usable_readings(joints, gyro, hall_v, params)
+    gyro, hall_v = usable_readings(joints, t, gyro, hall_v, params)
     T_len = t.shape[0]
     dt = _dt(t)
     out = np.full((T_len, K), np.nan)

@@ -66,6 +66,14 @@ def disconnect(s: kk.Session, columns: tuple[str, ...], seed: int) -> kk.Session
     return dataclasses.replace(s, hall_v=hall_v)
 
 
+def stick(s: kk.Session, columns: tuple[str, ...]) -> kk.Session:
+    """The columns stuck at one reading inside the range (a frozen ADC channel)."""
+    hall_v = s.hall_v.copy()
+    for c in columns:
+        hall_v[:, s.robot.hall_names.index(c)] = 1.65
+    return dataclasses.replace(s, hall_v=hall_v)
+
+
 def still_base(s: kk.Session, axis: str = "x") -> kk.Session:
     """The base link held still about ``axis``: its rate taken out of every link's gyro."""
     gyro = s.gyro.copy()
@@ -175,7 +183,7 @@ BROKEN = [(BENCH, "cyclic", 1), (BENCH, "human", 1), (SPATIAL, "cyclic", 2), (BE
 
 
 @pytest.mark.parametrize("robot, kind, joint", BROKEN, ids=lambda x: getattr(x, "spec", x))
-@pytest.mark.parametrize("how", ["disconnected", "curves"])
+@pytest.mark.parametrize("how", ["disconnected", "stuck", "curves"])
 def test_both_sensors_broken_is_unobservable(sessions, robot, kind, joint, how):
     j = [i for i, _ in robot.joint_axes].index(joint)
     cols = (robot.hall_names[2 * j], robot.hall_names[2 * j + 1])
@@ -183,6 +191,8 @@ def test_both_sensors_broken_is_unobservable(sessions, robot, kind, joint, how):
         s = sessions(robot, kind, seed)
         if how == "disconnected":
             s = disconnect(s, cols, seed)
+        elif how == "stuck":
+            s = stick(s, cols)
         else:
             # Each curve 10x off on the side the joint visits (a bend is positive: l's a, r's c).
             s = scale_curve(scale_curve(s, cols[0], 10.0, "a"), cols[1], 10.0, "c")
@@ -190,6 +200,13 @@ def test_both_sensors_broken_is_unobservable(sessions, robot, kind, joint, how):
         assert kinds_and_columns(found) == [("unobservable", cols)], (seed, found)
         assert found[0].severity == "error"
         assert cols[0] in found[0].fix and cols[1] in found[0].fix
+
+
+def test_one_stuck_sensor(sessions):
+    for seed in SEEDS:
+        found = kk.setup_check(stick(sessions(BENCH, "cyclic", seed), ("hall2_y_r",)))
+        assert kinds_and_columns(found) == [("bad_curve", ("hall2_y_r",))], (seed, found)
+        assert "does not follow" in found[0].message and "wiring" in found[0].fix
 
 
 # ------------------------------------------------------------------ what is not said

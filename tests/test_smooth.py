@@ -103,6 +103,7 @@ def _reference_nll(joints, t, gyro, hall_v, p, method):
     N, M = L["N"], L["M"]
     dt = R._dt(np.asarray(t, float))
     C, D = R._C(L), R._D(L)
+    gyro, hall_v = R.usable_readings(joints, t, gyro, hall_v, p)  # the readings used
     x, P, u = np.zeros(N), R._P0(L, p, method), np.zeros(L["n_gyro"])
     total, count = 0.0, 0
     for k in range(len(dt)):

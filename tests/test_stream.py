@@ -145,7 +145,7 @@ def test_one_trace_whatever_arrives(session):
 
 
 def test_statuses(session):
-    sf = StreamingFilter(Params.paper_defaults(ROBOT), gap_s=0.3)
+    sf = StreamingFilter(Params.paper_defaults(ROBOT), gap_s=0.3, max_predict_s=3.0)
     p = PacketParser(ROBOT, max_bytes=2000)
     first = sf.push(p.parse(packet_bytes(session, 0)))
     assert first["status"] == "ok" and set(ROBOT.angle_names) <= set(first)

@@ -12,10 +12,12 @@ import numpy as np
 
 from .._gaps import GapPolicy
 from .._hall import hall_exponentials
+from .._health import health_step, init_health
 from .._kernel import FilterState, SensorSeries, check_method, estimated, init_state, step
 from .._model import structure
 from .._params import Params
 from .._paths import STEP_TOL_S, Steady, converged_map, readings_present, relative_change
+from .._screen import FAULT_KINDS, screen
 from ._packets import USED, Packet, PacketParser
 
 #: Compiled once per parameter layout (``StreamingFilter.warmup`` compiles it up front).
@@ -107,6 +109,17 @@ class _HostMap:
 HOST_CHECK_EVERY = 64
 
 
+class _HostParams:
+    """What ``_health.health_step`` reads of ``Params``, as NumPy arrays in the parameters'
+    precision (no transfer from the device per packet)."""
+
+    def __init__(self, params: Params):
+        dtype = params.log_q.dtype
+        self.robot = params.robot
+        self.hall_coeffs = tuple(np.asarray(c, dtype) for c in params.hall_coeffs)
+        self.sigma_hall_v = np.asarray(params.sigma_hall_v, dtype)
+
+
 class StreamingFilter:
     """The batch filter's ``step``, one packet at a time, compiled once.
 
@@ -152,6 +165,9 @@ class StreamingFilter:
         # here, as the filter's step would (``_screen``): the host path must never see a
         # reading the step would not use.
         self._checker = PacketParser(params.robot, params=params)
+        # The sensors' health over time, packet by packet, as the batch filter's (``_health``)
+        # in the same precision, on host copies of the parameters it reads.
+        self._health_params = _HostParams(params)
         # The batch filter's gap policy (the same threshold and options: GapPolicy).
         self.gaps = GapPolicy(float(gap_s), on_gap,
                               None if max_predict_s is None else float(max_predict_s))
@@ -173,6 +189,7 @@ class StreamingFilter:
     def reset(self) -> None:
         """Back to the initial state (before the first packet)."""
         self._state = self._initial
+        self._health = init_health(self.robot, self.dtype, np)
         self.t_prev: float | None = None
         self._host: _HostMap | None = None
         self._regular, self._last_dt, self._P_check = 0, None, None
@@ -262,6 +279,9 @@ class StreamingFilter:
             if action == "restart":
                 self.reset()
                 dt = 0.0
+        self._judge(dt, pkt)
+        if pkt.status == "masked" and status == "ok":
+            status, note = "masked", pkt.note
         out = self._run(dt, pkt)
         if out is None and extra.get("gap") == "predict":
             # Predicting across this gap overflowed: start again at this packet instead.
@@ -274,6 +294,26 @@ class StreamingFilter:
         rec = self._record(pkt.t, status, note, out)
         rec.update(extra)
         return rec
+
+    def _judge(self, dt: float, pkt: Packet) -> None:
+        """The sensors' health (``_health``), as the batch filter's: a clipped gyro's and an
+        isolated Hall sensor's readings are made missing in ``pkt`` and named in its note and
+        ``faults``, and a gyro measuring the same rate stands in for a missing one."""
+        h, gyro, hall, g_code, h_code = health_step(
+            self._health_params, self._health, dt, pkt.gyro.astype(self.dtype),
+            pkt.hall_v.astype(self.dtype), np)
+        self._health = h
+        pkt.gyro = np.asarray(gyro, np.float64)
+        code = np.r_[g_code, h_code]
+        if code.any():
+            names = self.robot.gyro_names + self.robot.hall_names
+            bad = {names[i]: FAULT_KINDS[int(code[i]) - 1] for i in np.flatnonzero(code)}
+            pkt.hall_v = np.where(np.isnan(hall), np.nan, pkt.hall_v)
+            pkt.status = "masked"
+            pkt.faults = {**(pkt.faults or {}), **bad}
+            pkt.faulty = tuple(dict.fromkeys(pkt.faulty + tuple(bad)))
+            text = "not used: " + "; ".join(f"{n} {k}" for n, k in bad.items())
+            pkt.note = " | ".join(x for x in (pkt.note, text) if x)
 
     def _run(self, dt: float, pkt: Packet) -> np.ndarray | None:
         """One step: on the host path when it applies, else on the device; the new state is
@@ -310,35 +350,57 @@ class StreamingFilter:
         return rec
 
 
-def stream_step_fn(params: Params, method: str):
+def stream_step_fn(params: Params, method: str, health: bool = False):
     """The pure per-packet function ``(s, x) -> (s, [angles, std, ok])`` over ``step``.
 
     ``s`` is the whole filter state flattened into one vector and ``x = [dt, gyro (G),
     hall_v (M)]``: two arrays in, two out (dispatch cost on CPU grows with every argument). A
     non-finite result (impossible for finite readings, but the stream must survive anything)
-    leaves the state as it was and reports ``ok = 0``. Returns ``(fn, flatten, unflatten)``;
+    leaves the state as it was and reports ``ok = 0``. ``health``: ``s`` also carries the
+    sensors' health (``_health``) and the step judges each packet's Hall readings first, and
+    the output ends with each reading's fault code (``G + M``: ``_screen.FAULT_KINDS``), so a
+    deployment names them as ``kckf stream`` does (``kckf export``; ``StreamingFilter`` judges
+    on the host and passes ``False``). Returns ``(fn, flatten, unflatten)``;
     ``StreamingFilter`` jits it, ``kckf export`` serialises it.
     """
     G = 3 * params.robot.n_links
-    leaves, treedef = jax.tree_util.tree_flatten(init_state(params, method))
+    dtype = params.log_q.dtype
+    start = init_state(params, method)
+    if health:
+        start = (start, init_health(params.robot, dtype))
+    leaves, treedef = jax.tree_util.tree_flatten(start)
     shapes = [leaf.shape for leaf in leaves]
+    kinds = [leaf.dtype for leaf in leaves]
     cuts = np.cumsum([int(np.prod(sh)) for sh in shapes])[:-1].tolist()
 
     def unflatten(flat):
         parts = jnp.split(flat, cuts)
-        return jax.tree_util.tree_unflatten(treedef, [p.reshape(sh) for p, sh in
-                                                      zip(parts, shapes)])
+        return jax.tree_util.tree_unflatten(treedef, [
+            (p > 0.5 if k == np.bool_ else p).reshape(sh)
+            for p, sh, k in zip(parts, shapes, kinds)])
 
     def flatten(state):
-        return jnp.concatenate([jnp.ravel(leaf) for leaf in jax.tree_util.tree_leaves(state)])
+        return jnp.concatenate([jnp.ravel(leaf).astype(dtype)
+                                for leaf in jax.tree_util.tree_leaves(state)])
 
     def fn(flat, x, p=params):
         state = unflatten(flat)
         inputs = SensorSeries(x[0], x[1:1 + G], x[1 + G:])
+        if health:
+            state, h = state
+            used = screen(p, inputs.gyro, inputs.hall_v, stand_ins=False)
+            h, gyro, hall_v, g_code, h_code = health_step(p, h, inputs.dt, used.gyro,
+                                                          used.hall_v)
+            inputs = SensorSeries(inputs.dt, gyro, hall_v)
+            codes = jnp.concatenate([jnp.maximum(used.gyro_code, g_code),
+                                     jnp.maximum(used.hall_code, h_code)])
         new, est = step(p, state, inputs, method)  # a non-finite update keeps the state
         ok = ~est.skipped
-        out = jnp.concatenate([est.angles, est.angle_std, ok[None].astype(x.dtype)])
-        return flatten(new), out
+        out = [est.angles, est.angle_std, ok[None].astype(x.dtype)]
+        if health:
+            new = (new, h)
+            out.append(codes.astype(x.dtype))
+        return flatten(new), jnp.concatenate(out)
 
     return fn, flatten, unflatten
 

@@ -240,10 +240,10 @@ def run_stream(source: Source, sink, sf: StreamingFilter, parser: PacketParser, 
             pkt = parser.empty("oversized", f"{item.n_bytes} bytes, limit {parser.max_bytes}")
         else:
             pkt = parser.check(item) if isinstance(item, Packet) else parser.parse(item)
+        rec = sf.push(pkt)  # may name more (a sensor isolated over time)
         for name, kind in (pkt.faults or dict.fromkeys(pkt.faulty, "faulty")).items():
             key = f"{name} {kind}"
             faulty[key] = faulty.get(key, 0) + 1
-        rec = sf.push(pkt)
         counts[rec["status"]] += 1
         sink.write(rec)
     sink.close()

@@ -26,8 +26,9 @@ from .._screen import FAULT_KINDS, screen
 #: them and ``Packet.faults`` gives each column's kind); ``gap`` (time jumped by more than
 #: the gap limit; ``gap`` says whether the filter predicted across it or restarted).
 #: Skipped packets (the state is unchanged): ``malformed`` (not UTF-8 JSON, not an
-#: object), ``oversized``, ``missing_t``, ``bad_t`` (not a finite number), ``out_of_order`` (``t`` not after the previous packet's),
-#: ``rejected`` (the update was not finite).
+#: object), ``oversized``, ``missing_t``, ``bad_t`` (not a finite number),
+#: ``out_of_order`` (``t`` not after the previous packet's), ``rejected`` (the update was
+#: not finite).
 STATUSES = ("ok", "masked", "gap", "malformed", "oversized", "missing_t", "bad_t",
             "out_of_order", "rejected")
 USED = ("ok", "masked", "gap")
@@ -38,9 +39,10 @@ MAX_PACKET_BYTES = 8192
 class Packet:
     """One parsed packet: time (s, float64), readings (NaN = missing), status, note, the
     columns whose readings were faulty (``masked``) and ``{column: kind}`` for them
-    (``faults``; ``_screen.FAULT_KINDS``, or ``"not_a_number"``). ``screened``: the readings
-    are already as the filter uses them (``_screen.screen``: faulty ones missing, a missing
-    gyro stood in for), so ``StreamingFilter`` need not screen them again."""
+    (``faults``; ``_screen.FAULT_KINDS``, or ``"not_a_number"``). ``screened``: each reading
+    was judged alone (``_screen.screen``: faulty ones missing; no gyro stood in for yet:
+    ``StreamingFilter`` does it with the sensors' health over time), so ``StreamingFilter``
+    need not judge them again."""
 
     t: float | None
     gyro: np.ndarray
@@ -65,9 +67,9 @@ class PacketParser:
 
     def __init__(self, robot: Robot, max_bytes: int = MAX_PACKET_BYTES,
                  limits: SensorLimits = SensorLimits(), params=None):
-        """``params`` (``Params``, optional): screen every packet as the filter does
-        (``_screen.screen``: railed, unreachable and saturated readings named and masked, a
-        missing gyro stood in for); without it only the physical range is checked."""
+        """``params`` (``Params``, optional): judge every reading as the filter does
+        (``_screen.screen``: railed, unreachable and saturated readings named and masked);
+        without it only the physical range is checked."""
         self.robot = robot
         self.max_bytes = max_bytes
         self.limits = params.limits if params is not None else limits
@@ -139,12 +141,13 @@ class PacketParser:
                 extra: str = "", faulty: list[str] | None = None) -> Packet:
         """Mask the readings outside the physical range (absent ones, NaN, are missing and
         fine), fill ``pkt`` and set its status and note."""
+        problems = list(problems)
         kinds = {i: "not_a_number" for i, _ in problems}
         if self.params is not None:
             with np.errstate(invalid="ignore"):
-                used = screen(self.params, arr[: self._G], arr[self._G:], np)
+                used = screen(self.params, arr[: self._G], arr[self._G:], np, stand_ins=False)
             codes = np.r_[used.gyro_code, used.hall_code]
-            for i in np.flatnonzero(codes):
+            for i in map(int, np.flatnonzero(codes)):
                 kind = FAULT_KINDS[codes[i] - 1]
                 problems.append((i, f"{self._names[i]} = {arr[i]:.6g} {kind}"))
                 kinds[i] = kind
@@ -154,8 +157,8 @@ class PacketParser:
         else:
             bad = ~(np.isnan(arr) | ((arr >= self._lo) & (arr <= self._hi)))
             problems += [(i, f"{self._names[i]} = {arr[i]:.6g} out of range")
-                         for i in np.flatnonzero(bad)]
-            kinds.update((i, "out_of_range") for i in np.flatnonzero(bad))
+                         for i in map(int, np.flatnonzero(bad))]
+            kinds.update((i, "out_of_range") for i in map(int, np.flatnonzero(bad)))
             arr[bad] = np.nan
             pkt.gyro[:] = arr[: self._G]
             pkt.hall_v[:] = arr[self._G:]

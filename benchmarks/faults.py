@@ -1,0 +1,114 @@
+"""Sensor faults: what each does to the KCKF's error, and whether it is named.
+
+    python benchmarks/faults.py [--seeds 1,2,3] [--steps 60] [--json]
+
+Sessions: ``kckf simulate --kind cyclic --duration 60 --joints x,y,x,y`` for each seed (its
+own robot: ``device_seed`` = seed), each fault of issue 33 written onto a copy with
+``kk.inject_faults`` (``kckf simulate --fault``). Parameters: the paper's defaults, and a fit
+(``--steps`` Adam steps, the default ``FitConfig`` otherwise) on two other clean trials of
+the same robot. Float32, the default gap policy. Per fault and parameter set: the mean RMSE
+(deg) clean and faulty, averaged over the seeds, the largest estimated angle (deg), and
+whether every faulty column was named (``"faults"`` of ``kckf evaluate --json``) or, for the
+set-up mistakes, by ``kk.setup_check``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+import numpy as np
+
+import kckf_jax as kk
+
+FAULTS = {
+    "Hall disconnected (0 V) for 10 s": ["disconnect:hall1_x_l@20-30"],
+    "2 s of 0.5 V noise on one Hall sensor": ["noise:hall1_x_l@20-22=0.5"],
+    "2 s of 0.5 V noise on all eight Hall sensors": [
+        f"noise:hall{i}_{a}_{s}@20-22=0.5" for i, a in zip(range(1, 5), "xyxy") for s in "lr"],
+    "gyro clipped at +-2 rad/s": ["clip:gyro5_x=2.0"],
+    "gyro bias steps by 0.2 rad/s at 30 s": ["bias_step:gyro3_x@30=0.2"],
+    "Hall stuck at 1.65 V for 20 s": ["stuck:hall1_x_l@20-40=1.65"],
+    "Hall coefficient a 10x in meta.json": ["coeff:hall1_x_l=10"],
+    "left and right Hall columns swapped": ["swap:hall1_x"],
+    "10-minute gap": ["gap@30-630"],  # on a 660 s session (below)
+    "gyro4_x blanked where |rate| >= 1.2 rad/s": ["blank:gyro4_x=1.2"],
+}
+
+
+def mean_rmse(session, params):
+    est = kk.filter_sessions([session], "kckf", params)[0]
+    table = kk.rmse_table([session], [est.angles])
+    return table["mean_rmse_deg"], float(np.nanmax(np.abs(np.degrees(est.angles)))), est
+
+
+def named(session, est, specs):
+    robot = session.robot
+    found = {f["column"] for f in kk.fault_stretches(session.t, est.faults,
+                                                      robot.gyro_names + robot.hall_names)}
+    setup = {c for f in kk.setup_check(session) for c in f.columns}
+    want = set()
+    for spec in specs:
+        f = kk.Fault.parse(spec)
+        if f.column and f.kind != "gap":
+            want.add(f.column if f.kind != "swap" else f.column + "_l")
+    if not want:
+        return "as a gap"  # every command names a gap and what it did (stderr, JSON)
+    if want <= found:
+        return "yes"
+    if want <= setup | {c[:-2] + "_l" for c in setup if c.endswith("_r")}:
+        return "set-up check"
+    return "no"
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--seeds", default="1,2,3")
+    ap.add_argument("--steps", type=int, default=60)
+    ap.add_argument("--json", action="store_true")
+    args = ap.parse_args(argv)
+    robot = kk.Robot.from_spec("x,y,x,y")
+    rows = {name: {"paper": [], "fitted": [], "max_deg": [], "named": []} for name in FAULTS}
+    clean = {"paper": [], "fitted": []}
+    for seed in (int(s) for s in args.seeds.split(",")):
+        s = kk.simulate(robot, "cyclic", seed=seed, duration_s=60.0, device_seed=seed)
+        train = [kk.simulate(robot, "cyclic", seed=1000 + 10 * seed + k, duration_s=40.0,
+                             device_seed=seed) for k in range(2)]
+        fitted = kk.fit(train, config=kk.FitConfig(steps=args.steps)).params
+        paper = kk.Params.paper_defaults(robot, s.hall_models)
+        clean["paper"].append(mean_rmse(s, paper)[0])
+        assert not kk.fault_stretches(s.t, mean_rmse(s, paper)[2].faults,
+                                      robot.gyro_names + robot.hall_names), "clean: a fault"
+        clean["fitted"].append(mean_rmse(s, fitted)[0])
+        long = kk.simulate(robot, "cyclic", seed=seed, duration_s=660.0, device_seed=seed)
+        for name, specs in FAULTS.items():
+            base = long if "gap" in name else s
+            bad = kk.inject_faults(base, [kk.Fault.parse(x) for x in specs], seed=seed)
+            p_paper = kk.Params.paper_defaults(robot, bad.hall_models)
+            a, mx, est = mean_rmse(bad, p_paper)
+            b, mx2, _ = mean_rmse(bad, fitted)
+            rows[name]["paper"].append(a)
+            rows[name]["fitted"].append(b)
+            rows[name]["max_deg"].append(max(mx, mx2))
+            rows[name]["named"].append(named(bad, est, specs))
+        print(f"seed {seed} done", file=sys.stderr)
+    out = {"clean": {k: float(np.mean(v)) for k, v in clean.items()},
+           "faults": {n: {"paper": float(np.mean(r["paper"])),
+                          "fitted": float(np.mean(r["fitted"])),
+                          "max_deg": float(np.max(r["max_deg"])),
+                          "named": sorted(set(r["named"]))} for n, r in rows.items()}}
+    if args.json:
+        print(json.dumps(out, indent=1))
+        return
+    c = out["clean"]
+    print(f"clean: paper {c['paper']:.2f} deg, fitted {c['fitted']:.2f} deg")
+    print("| fault | paper defaults | fitted | largest estimate (deg) | named |")
+    print("| --- | ---: | ---: | ---: | --- |")
+    for n, r in out["faults"].items():
+        print(f"| {n} | {r['paper']:.2f} | {r['fitted']:.2f} | {r['max_deg']:.0f} | "
+              f"{', '.join(r['named'])} |")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,213 @@
+"""Sensor health over time: a Hall sensor whose readings stop following its joint is isolated,
+and re-admitted once they follow it again.
+
+``_screen`` judges each reading alone. A sensor can also fail inside its range: a connector
+that picks up noise, a sensor stuck at a plausible voltage. Each joint axis has what it takes
+to see it: two Hall sensors on opposite sides and the gyros on the two links it joins. The
+monitor keeps, per joint axis, a reference angle ``ref``: the gyros' joint rate integrated,
+pulled towards the sensors it trusts with time constant ``REF_TAU_S``. Per Hall sensor:
+
+* **roughness**: the step-to-step change of the sensor's angle less the reference's change,
+  squared and normalised by what the sensor's voltage noise (``Params.sigma_hall_v`` through
+  the curve's slope) and the motion within a step explain, averaged over ``ROUGH_TAU_S``. A
+  healthy sensor scores about 1; noise on the wire scores in the hundreds. Above
+  ``ROUGH_HIGH`` the sensor is ``noisy``;
+* **stuck**: the voltage has not changed for ``STUCK_S`` while the gyros say the joint moved
+  more than ``STUCK_MOVE_RAD``; a live sensor's reading changes every sample (its noise is
+  tens of ADC steps).
+
+A gyro clipped below the full scale ``meta.json`` states (configured for a narrower range)
+reads one value again and again at the largest magnitude it has read (``CLIP_REPEATS``):
+that reading is ``saturated`` and a gyro measuring the same rate stands in for it
+(``_screen``).
+
+An isolated sensor's readings are not used (codes ``NOISY``, ``STUCK``, after ``_screen``'s)
+until it has been calm (roughness below ``ROUGH_LOW``, not stuck) for ``READMIT_S``. After a
+time step longer than ``RESTART_S`` (a gap) the reference starts again from the sensors, and
+nothing is judged on that step, so a gap or a restart never locks a sensor out.
+
+The monitor sees only the readings and the parameters, never the Kalman filter's state, so the
+same decisions reach every path (it runs once over a recording before any path, the kernel's
+``plausible``), the smoother, the likelihood, the fit (its decisions are constants of the
+parameters: evaluated on ``stop_gradient``-ed values) and, packet by packet, the stream
+(``xp=np``). It is written once for NumPy and JAX.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._hall import hall_exponentials
+from ._screen import SATURATED, screen, stand_in
+
+#: Codes after ``_screen.FAULT_KINDS``' (1-4; a clipped gyro is ``SATURATED``).
+NOISY, STUCK = 5, 6
+
+REF_TAU_S = 0.5  # the reference's pull towards the trusted sensors
+ROUGH_TAU_S = 0.05  # roughness average: a few samples at 100 Hz
+ROUGH_HIGH = 40.0  # isolated above (a healthy sensor scores about 1; see docs/faults.md)
+ROUGH_LOW = 6.0  # calm below
+READMIT_S = 0.5  # calm this long before a sensor is used again
+STUCK_S = 0.1  # unchanged this long ...
+STUCK_MOVE_RAD = 2.0 * np.pi / 180.0  # ... while the joint moved this much
+RESTART_S = 0.5  # a longer time step starts the reference again
+MOTION_FRACTION = 0.2  # a sensor's change may differ from the gyros' by this share ...
+MOTION_FLOOR_RAD = 0.2 * np.pi / 180.0  # ... plus this, per step
+# A gyro reading repeated this many more times (six equal readings in a row: for a live
+# LSM6DSO at 100 Hz, whose noise is about 3 LSB per sample, once in ~1e5 samples) ...
+CLIP_REPEATS = 5
+CLIP_PEAK_FRACTION = 0.9  # ... within 10 % of the channel's largest magnitude so far ...
+CLIP_MIN_RAD_S = 0.5  # ... and above this (a still robot's gyro may repeat itself)
+
+
+class Health(NamedTuple):
+    """The monitor's state (leading axes: trials): per joint axis (``J``) the reference angle
+    and whether it is set; per Hall sensor (``M``) the last voltage and residual, the
+    roughness, how long the voltage has been unchanged and how far the joint moved since,
+    whether the sensor is isolated and how long it has been calm; per gyro channel (``G``)
+    the last rate used (held), the last reading, how many readings in a row have repeated it
+    and the largest magnitude read so far."""
+
+    ref: object
+    ref_ok: object
+    last_v: object
+    last_e: object
+    rough: object
+    still_s: object
+    moved: object
+    isolated: object
+    calm_s: object
+    gyro: object
+    g_last: object
+    g_repeat: object
+    g_peak: object
+
+
+def init_health(robot, dtype, xp=jnp, batch=()) -> Health:
+    J, M, G = robot.n_joint_axes, robot.n_hall, 3 * robot.n_links
+
+    def full(n, v, dt=dtype):
+        return xp.full(tuple(batch) + (n,), v, dtype=dt)
+
+    return Health(full(J, 0.0), full(J, False, bool), full(M, np.nan), full(M, np.nan),
+                  full(M, 0.0), full(M, 0.0), full(M, 0.0), full(M, False, bool),
+                  full(M, 0.0), full(G, 0.0), full(G, np.nan), full(G, 0.0), full(G, 0.0))
+
+
+def _curve(params, xp):
+    coeffs = params.hall_coeffs
+    sigma_v = params.sigma_hall_v
+    if xp is np:
+        coeffs = tuple(np.asarray(c) for c in coeffs)
+        sigma_v = np.asarray(sigma_v)
+    else:
+        coeffs = tuple(jax.lax.stop_gradient(c) for c in coeffs)
+        sigma_v = jax.lax.stop_gradient(sigma_v)
+    return hall_exponentials(*coeffs), sigma_v
+
+
+def health_step(params, h: Health, dt, gyro, hall_v, xp=jnp):
+    """One row (``dt`` s, ``gyro`` ``G`` rad/s and ``hall_v`` ``M`` V as ``_screen`` leaves
+    them, before any stand-in; any leading axes): ``(state, gyro, hall_v, gyro_code,
+    hall_code)``: the new state, the readings the filter uses (a clipped gyro and an isolated
+    Hall sensor NaN, a gyro stood in for: ``_screen``'s ``stand_in``) and each reading's
+    health code (0; ``SATURATED`` for a gyro, ``NOISY`` or ``STUCK`` for a Hall sensor)."""
+    robot = params.robot
+    dtype = h.ref.dtype
+    dt = xp.asarray(dt, dtype)[..., None]
+    (w1, w2), (k1, k2) = _curve(params, xp)[0]
+    sigma_v = _curve(params, xp)[1]
+    plus, minus = robot.rate_pairs
+    J = robot.n_joint_axes
+    # A gyro clipped below its stated full scale: the same reading, at the largest magnitude
+    # the channel has read, again and again (a live gyro's noise moves it every sample).
+    gyro = xp.asarray(gyro, dtype)
+    read = xp.isfinite(gyro)
+    g_abs = xp.abs(gyro)
+    repeat = xp.where(read & (gyro == h.g_last), h.g_repeat + 1.0, 0.0)
+    peak = xp.maximum(h.g_peak, xp.where(read, g_abs, 0.0))
+    flat = read & (repeat >= CLIP_REPEATS) & (g_abs >= CLIP_PEAK_FRACTION * peak) & (
+        g_abs >= CLIP_MIN_RAD_S)
+    g_used = stand_in(robot, xp.where(flat, np.nan, gyro), xp)
+    g_code = xp.where(flat, SATURATED, 0).astype(xp.int8)
+    g_last = xp.where(read, gyro, h.g_last)
+    gyro = xp.where(xp.isnan(g_used), h.gyro, g_used)
+    rate = gyro[..., plus[:J]] - gyro[..., minus[:J]]  # (.., J) joint rates
+    joint = robot.hall_joint_axis  # (M,) joint axis of every sensor
+    gap = dt > RESTART_S
+    fresh = gap | ~h.ref_ok
+    ref = h.ref + xp.where(gap, 0.0, dt) * rate
+    step_move = xp.abs(dt * rate)[..., joint]
+
+    ok = xp.isfinite(hall_v)
+    v = xp.where(ok, hall_v, 1.65)
+    e1, e2 = xp.exp(k1 * v), xp.exp(k2 * v)
+    angle = w1 * e1 + w2 * e2
+    slope = xp.abs(w1 * k1 * e1 + w2 * k2 * e2)
+    e = angle - ref[..., joint]  # residual against the reference
+    judged = ok & xp.isfinite(h.last_e) & ~fresh[..., joint]
+    expect = (2.0 * (slope * sigma_v) ** 2
+              + (MOTION_FRACTION * step_move + MOTION_FLOOR_RAD) ** 2)
+    z = xp.where(judged, (e - h.last_e) ** 2 / expect, 0.0)
+    a = xp.minimum(1.0, dt / ROUGH_TAU_S)
+    rough = xp.where(judged, h.rough + a * (z - h.rough), xp.where(fresh[..., joint], 0.0,
+                                                                  h.rough))
+    same = ok & (v == h.last_v)
+    still = xp.where(same, h.still_s + dt, 0.0)
+    moved = xp.where(same, h.moved + step_move, 0.0)
+    stuck = same & (still >= STUCK_S) & (moved >= STUCK_MOVE_RAD)
+    noisy = rough > ROUGH_HIGH
+    calm = ok & ~noisy & ~stuck & (rough < ROUGH_LOW)
+    calm_s = xp.where(h.isolated & calm, h.calm_s + dt, 0.0)
+    isolated = (h.isolated & (calm_s < READMIT_S)) | noisy | stuck
+    use = ok & ~isolated
+
+    # The reference: set from the trusted sensors where it starts, else pulled towards them.
+    onehot = np.asarray(joint[:, None] == np.arange(J)[None, :], dtype)  # (M, J)
+    wsum = xp.sum(use[..., :, None] * onehot, axis=-2)
+    asum = xp.sum(xp.where(use, angle, 0.0)[..., :, None] * onehot, axis=-2)
+    mean = asum / xp.maximum(wsum, 1.0)
+    have = wsum > 0
+    pull = xp.minimum(1.0, dt / REF_TAU_S)
+    ref = xp.where(have & fresh, mean, xp.where(have, ref + pull * (mean - ref), ref))
+    ref_ok = (h.ref_ok & ~gap) | have
+    # A missing reading keeps the last residual (the reference goes on with the gyros), so a
+    # sensor whose every other reading is dropped is still judged; a gap forgets it.
+    last_e = xp.where(ok, angle - ref[..., joint], xp.where(fresh[..., joint], np.nan, h.last_e))
+    new = Health(ref, ref_ok, xp.where(ok, v, np.nan), last_e, rough,
+                 still, moved, isolated, calm_s, gyro, g_last, repeat, peak)
+    code = xp.where(ok & isolated, xp.where(stuck, STUCK, NOISY), 0)
+    return new, g_used, xp.where(use, hall_v, np.nan), g_code, code.astype(xp.int8)
+
+
+def monitor(params, dt, gyro, hall_v):
+    """``health_step`` over the rows of one recording or a batch (``dt``: ``... T``), on the
+    device: ``(gyro, hall_v, gyro_code, hall_code)``, the readings the filter uses and each
+    one's health code."""
+    dtype = jnp.result_type(hall_v.dtype, jnp.float32)
+    batch = jnp.shape(dt)[:-1]
+    h0 = init_health(params.robot, dtype, jnp, batch)
+
+    def body(h, row):
+        h, *out = health_step(params, h, *row)
+        return h, tuple(out)
+
+    rows = (jnp.moveaxis(jnp.asarray(dt, dtype), -1, 0), jnp.moveaxis(gyro, -2, 0),
+            jnp.moveaxis(hall_v, -2, 0))
+    _, out = jax.lax.scan(body, h0, rows)
+    return tuple(jnp.moveaxis(x, 0, -2) for x in out)
+
+
+def screened_series(params, dt, gyro, hall_v):
+    """The readings of a recording or a batch as the filter uses them, and why not: ``_screen``
+    row by row, then the health monitor over time. Returns ``(gyro, hall_v, codes)``, codes
+    per reading (``... G + M``, ``_screen.FAULT_KINDS``; 0: used or missing)."""
+    used = screen(params, gyro, hall_v, jnp, stand_ins=False)
+    g, v, g_code, h_code = monitor(params, dt, used.gyro, used.hall_v)
+    codes = jnp.concatenate([jnp.maximum(used.gyro_code, g_code),
+                             jnp.maximum(used.hall_code, h_code)], axis=-1)
+    return g, v, codes
