@@ -62,6 +62,7 @@ MOTION_FLOOR_RAD = 0.2 * np.pi / 180.0  # ... plus this, per step
 CLIP_REPEATS = 5
 CLIP_PEAK_FRACTION = 0.9  # ... within 10 % of the channel's largest magnitude so far ...
 CLIP_MIN_RAD_S = 0.5  # ... and above this (a still robot's gyro may repeat itself)
+HOLD_S = 0.05  # a gyro reading missing longer than this is stood in for
 
 
 class Health(NamedTuple):
@@ -70,7 +71,7 @@ class Health(NamedTuple):
     roughness, how long the voltage has been unchanged and how far the joint moved since,
     whether the sensor is isolated and how long it has been calm; per gyro channel (``G``)
     the last rate used (held), the last reading, how many readings in a row have repeated it
-    and the largest magnitude read so far."""
+    the largest magnitude read so far, and how long it has had no reading it uses."""
 
     ref: object
     ref_ok: object
@@ -85,6 +86,7 @@ class Health(NamedTuple):
     g_last: object
     g_repeat: object
     g_peak: object
+    g_missing_s: object
 
 
 def init_health(robot, dtype, xp=jnp, batch=()) -> Health:
@@ -95,7 +97,8 @@ def init_health(robot, dtype, xp=jnp, batch=()) -> Health:
 
     return Health(full(J, 0.0), full(J, False, bool), full(M, np.nan), full(M, np.nan),
                   full(M, 0.0), full(M, 0.0), full(M, 0.0), full(M, False, bool),
-                  full(M, 0.0), full(G, 0.0), full(G, np.nan), full(G, 0.0), full(G, 0.0))
+                  full(M, 0.0), full(G, 0.0), full(G, np.nan), full(G, 0.0), full(G, 0.0),
+                  full(G, 0.0))
 
 
 def _curve(params, xp):
@@ -132,7 +135,12 @@ def health_step(params, h: Health, dt, gyro, hall_v, xp=jnp):
     peak = xp.maximum(h.g_peak, xp.where(read, g_abs, 0.0))
     flat = read & (repeat >= CLIP_REPEATS) & (g_abs >= CLIP_PEAK_FRACTION * peak) & (
         g_abs >= CLIP_MIN_RAD_S)
-    g_used = stand_in(robot, xp.where(flat, np.nan, gyro), xp)
+    g_read = xp.where(flat, np.nan, gyro)
+    # A channel without a reading holds its last one for a few samples (as accurate as any
+    # other gyro's, whose bias differs); one missing for longer than HOLD_S takes a gyro
+    # measuring the same rate (``_screen.stand_in``).
+    missing_s = xp.where(xp.isnan(g_read), h.g_missing_s + dt, 0.0)
+    g_used = xp.where(missing_s > HOLD_S, stand_in(robot, g_read, xp), g_read)
     g_code = xp.where(flat, SATURATED, 0).astype(xp.int8)
     g_last = xp.where(read, gyro, h.g_last)
     gyro = xp.where(xp.isnan(g_used), h.gyro, g_used)
@@ -179,7 +187,7 @@ def health_step(params, h: Health, dt, gyro, hall_v, xp=jnp):
     # sensor whose every other reading is dropped is still judged; a gap forgets it.
     last_e = xp.where(ok, angle - ref[..., joint], xp.where(fresh[..., joint], np.nan, h.last_e))
     new = Health(ref, ref_ok, xp.where(ok, v, np.nan), last_e, rough,
-                 still, moved, isolated, calm_s, gyro, g_last, repeat, peak)
+                 still, moved, isolated, calm_s, gyro, g_last, repeat, peak, missing_s)
     code = xp.where(ok & isolated, xp.where(stuck, STUCK, NOISY), 0)
     return new, g_used, xp.where(use, hall_v, np.nan), g_code, code.astype(xp.int8)
 
@@ -206,7 +214,7 @@ def screened_series(params, dt, gyro, hall_v):
     """The readings of a recording or a batch as the filter uses them, and why not: ``_screen``
     row by row, then the health monitor over time. Returns ``(gyro, hall_v, codes)``, codes
     per reading (``... G + M``, ``_screen.FAULT_KINDS``; 0: used or missing)."""
-    used = screen(params, gyro, hall_v, jnp, stand_ins=False)
+    used = screen(params, gyro, hall_v, jnp)
     g, v, g_code, h_code = monitor(params, dt, used.gyro, used.hall_v)
     codes = jnp.concatenate([jnp.maximum(used.gyro_code, g_code),
                              jnp.maximum(used.hall_code, h_code)], axis=-1)

@@ -22,9 +22,10 @@ Conventions shared with the NumPy reference in ``tests/``:
   ``omega(k)`` to reach ``k + 1``); a missing gyro reading holds that channel's last value;
 * a missing Hall reading (NaN) removes only its own measurement row at that step;
 * a reading that cannot be a measurement (outside its physical range ``Params.limits``, a
-  railed Hall sensor, an angle no joint reaches, a saturated gyro: ``_screen``) is treated as
-  missing, and a missing gyro reading is taken from a gyro measuring the same rate
-  (``Robot.gyro_stand_ins``) where one reads;
+  railed Hall sensor, an angle no joint reaches, a saturated gyro: ``_screen``; a Hall sensor
+  isolated over time, a clipped gyro: ``_health``) is treated as missing, and a gyro reading
+  missing for a while is taken from a gyro measuring the same rate (``Robot.gyro_stand_ins``)
+  where one reads (``plausible``);
 * a Kalman step whose new state is not finite is skipped: the state is kept as it was, and
   ``Estimate.skipped`` says so (the streaming filter reports it as ``rejected``);
 * a padded step (``dt = 0``, every reading NaN) leaves the state unchanged.
@@ -386,11 +387,12 @@ def step(
 def plausible(params: Params, series: SensorSeries) -> SensorSeries:
     """``series`` (a row, a recording or a batch) as the filter uses it (``_screen.screen``):
     every reading that cannot be a measurement (outside ``params.limits``, a railed Hall
-    sensor, an angle no joint reaches, a saturated gyro) made missing, and a missing gyro
-    reading taken from a gyro that measures the same rate (``Robot.gyro_stand_ins``). Given
-    a recording or a batch (a time axis), also the Hall sensors isolated over time
-    (``_health``: noisy or stuck) made missing; each path calls it once on its whole input,
-    the step on its row (where it changes nothing more)."""
+    sensor, an angle no joint reaches, a saturated gyro) made missing. Given a recording or a
+    batch (a time axis), also judged over time (``_health``): a Hall sensor that turns noisy
+    or sticks and a clipped gyro made missing, and a gyro reading missing for a while taken
+    from a gyro that measures the same rate (``Robot.gyro_stand_ins``). Each path calls it
+    once on its whole input (then ``SensorSeries.screened``), the step on its row (where it
+    changes nothing more)."""
     if series.screened:
         return series
     gyro, hall_v = jnp.asarray(series.gyro), jnp.asarray(series.hall_v)

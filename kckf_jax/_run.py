@@ -15,6 +15,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import Array
 
 from ._gaps import GapPolicy
 from ._health import screened_series
@@ -86,6 +87,7 @@ def run_filter(
         ((5, 4), 'sequential')
     """
     check_method(method)
+    series, faults = screened(params, series)
     chosen = choose_path(params, series, method, path, state).path
     if state is None:
         state = init_state(params, method)
@@ -93,26 +95,35 @@ def run_filter(
         final, est, ok = _segments_on_host(
             chosen, lambda last: _run_one_pass(chosen, params, series, method, state, last))
         if ok:
-            return final, _named(est, chosen, params, series)
+            return final, _named(est, chosen, params, faults)
         chosen = Sequential()  # the segments' check failed, and so did its repairs
     final, est = _run_one(chosen, params, series, method, state)
-    return final, _named(est, chosen, params, series)
+    return final, _named(est, chosen, params, faults)
 
 
-def _named(est: Estimate, path: AbstractPath, params: Params, series: SensorSeries) -> Estimate:
+def _named(est: Estimate, path: AbstractPath, params: Params, faults) -> Estimate:
     """``est`` with the path that ran, the angles' names and why each reading the filter did
-    not use was not used (``Estimate.faults``: the step's own decision, ``_screen``)."""
+    not use was not used (``Estimate.faults``)."""
     return dataclasses.replace(est, path=path.name, names=params.robot.angle_names,
-                               faults=series_faults(params, series))
+                               faults=faults)
 
 
 @eqx.filter_jit
-def series_faults(params: Params, series: SensorSeries):
-    """``Estimate.faults`` of ``series`` (one recording or a batch): why each reading the
-    filter did not use was not used (``_screen.fault_codes``, with the sensors' health over
-    time)."""
-    return screened_series(params, jnp.asarray(series.dt), jnp.asarray(series.gyro),
-                           jnp.asarray(series.hall_v))[2]
+def screened(params: Params, series: SensorSeries) -> tuple[SensorSeries, Array]:
+    """``series`` (one recording or a batch) as the filter uses it (the kernel's
+    ``plausible``: judged row by row and over time), and why each reading it does not use is
+    not used (``Estimate.faults``: codes of ``_screen.FAULT_KINDS``). Every path is given
+    the screened series (``SensorSeries.screened``), so the readings are judged once."""
+    dtype = params.log_q.dtype
+    gyro, hall_v, codes = screened_series(params, jnp.asarray(series.dt, dtype),
+                                          jnp.asarray(series.gyro, dtype),
+                                          jnp.asarray(series.hall_v, dtype))
+    return SensorSeries(jnp.asarray(series.dt, dtype), gyro, hall_v, screened=True), codes
+
+
+def series_faults(params: Params, series: SensorSeries) -> Array:
+    """``Estimate.faults`` of ``series``: ``screened``'s codes."""
+    return screened(params, series)[1]
 
 
 def _one(x):
@@ -160,15 +171,16 @@ def filter_batch(params: Params, series: SensorSeries, method: str = "kckf",
         (2, 7, 2)
     """
     check_method(method)
+    series, faults = screened(params, series)
     chosen = choose_path(params, series, method, path).path
     if isinstance(chosen, Segments) and not is_traced(params, series):
         _, est, ok = _segments_on_host(
             chosen, lambda last: _run_batch_pass(chosen, params, series, method, last))
         if ok:
-            return _named(est, chosen, params, series)
+            return _named(est, chosen, params, faults)
         chosen = Sequential()  # the segments' check failed, and so did its repairs
     est = _run_batch(chosen, params, series, method)
-    return _named(est, chosen, params, series)
+    return _named(est, chosen, params, faults)
 
 
 @eqx.filter_jit

@@ -14,11 +14,12 @@ A reading that cannot be a measurement is not used, and is named:
 * ``saturated``: a gyro reading at its full scale (``SensorLimits.gyro_rad_s``): the true rate
   may be larger.
 
-A reading that is not there (NaN) is missing, not faulty. Then a gyro channel the filters read
-whose reading is missing or faulty takes the reading of a gyro that measures the same rate
-(``Robot.gyro_stand_ins``: the same axis, on a link no joint about that axis separates from
-it), so its joints' rates come from the other links' gyros; only where no such gyro reads does
-the channel hold its last value (the kernel's ``gyro_hold``).
+A reading that is not there (NaN) is missing, not faulty. A gyro channel the filters read whose
+reading has been missing or faulty for a while takes the reading of a gyro that measures the
+same rate (``stand_in``, ``Robot.gyro_stand_ins``: the same axis, on a link no joint about that
+axis separates from it; ``_health`` decides when), so its joints' rates come from the other
+links' gyros; only where no such gyro reads does the channel hold its last value (the
+kernel's ``gyro_hold``).
 
 Each decision looks at one row alone, so it is the same whether a row comes from a recording,
 a batch of trials or a live packet: ``screen`` works on any leading axes, on NumPy (the report
@@ -63,17 +64,16 @@ class Screened(NamedTuple):
     hall_code: object
 
 
-def screen(params, gyro, hall_v, xp=jnp, stand_ins: bool = True) -> Screened:
+def screen(params, gyro, hall_v, xp=jnp) -> Screened:
     """The readings of ``gyro`` (``... G``) and ``hall_v`` (``... M``) the filter uses, and why
     the others are not used.
 
     ``params``: anything with ``robot``, ``limits`` and ``hall_coeffs`` (``Params``;
     ``hall_coeffs=None`` leaves out the curve's check). ``xp``: ``np`` for host arrays
-    (float64 decisions), ``jnp`` inside the filters. ``stand_ins=False``: no gyro stands in
-    for another (``_health`` does it after its own check of the gyros).
+    (float64 decisions), ``jnp`` inside the filters. No gyro stands in for another here
+    (``_health`` does it, once a reading has been missing for a while: ``stand_in``).
     """
     limits = params.limits
-    robot = params.robot
     lo, hi = limits.hall_v
     rail = limits.rail_v
     g_abs = xp.abs(gyro)
@@ -97,14 +97,12 @@ def screen(params, gyro, hall_v, xp=jnp, stand_ins: bool = True) -> Screened:
                  xp.where(xp.abs(angle) > limits.joint_range_rad, UNREACHABLE, 0)))
     g_used = xp.where(g_code > 0, xp.nan, gyro)
     h_used = xp.where(h_code > 0, xp.nan, hall_v)
-    if stand_ins:
-        g_used = stand_in(robot, g_used, xp)
     return Screened(g_used, h_used, g_code.astype(xp.int8), h_code.astype(xp.int8))
 
 
 def stand_in(robot, gyro, xp=jnp):
-    """Every channel the filters read that has no reading takes its first stand-in's
-    (``Robot.gyro_stand_ins``) that has one."""
+    """Every channel the filters read that has no reading (``... G``) takes the reading of its
+    first stand-in (``Robot.gyro_stand_ins``) that has one."""
     used = set(int(i) for i in robot.used_gyro_index)
     cols = []
     for c, mates in enumerate(robot.gyro_stand_ins):

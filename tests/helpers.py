@@ -22,7 +22,7 @@ def reference_params(params: Params) -> dict:
                hall_v_range=params.limits.hall_v, gyro_range_rad_s=params.limits.gyro_rad_s,
                joint_range_rad=params.limits.joint_range_rad,
                health={k: getattr(_health, k) for k in (
-                   "CLIP_REPEATS", "CLIP_MIN_RAD_S", "RESTART_S", "MOTION_FRACTION",
+                   "CLIP_REPEATS", "CLIP_MIN_RAD_S", "HOLD_S", "RESTART_S", "MOTION_FRACTION",
                    "MOTION_FLOOR_RAD", "ROUGH_TAU_S", "ROUGH_HIGH", "ROUGH_LOW", "STUCK_S",
                    "STUCK_MOVE_RAD", "READMIT_S", "REF_TAU_S")})
     return out

@@ -267,8 +267,9 @@ def usable_readings(joints, t, gyro, hall_v, params):
 
     * a gyro reading equal to the channel's last CLIP_REPEATS readings, at 90 % or more of the
       largest magnitude the channel has read and at least CLIP_MIN_RAD_S, is clipped: not used;
-    * a gyro column a rate uses without a reading takes its first stand-in's
-      (``_stand_in_order``); the rates below hold a column's last value;
+    * a gyro column a rate uses without a reading for more than HOLD_S (summed time steps)
+      takes its first stand-in's (``_stand_in_order``); the rates below hold a column's
+      last value;
     * every joint axis has a reference angle: set from the mean of its used Hall angles where
       it starts (the first row, or after a step longer than RESTART_S), else the joint rate
       from the gyros integrated and pulled towards that mean by min(1, dt / REF_TAU_S);
@@ -289,7 +290,7 @@ def usable_readings(joints, t, gyro, hall_v, params):
     dt = _dt(t)
     T_len = len(t)
     g_out, v_out = np.full_like(gyro, np.nan), hall_v.copy()
-    g_last, g_rep, g_peak = np.full(G, np.nan), np.zeros(G), np.zeros(G)
+    g_last, g_rep, g_peak, g_miss = np.full(G, np.nan), np.zeros(G), np.zeros(G), np.zeros(G)
     hold = np.zeros(G)
     ref, ref_ok = np.zeros(J), np.zeros(J, bool)
     last_v, last_e = np.full(M, np.nan), np.full(M, np.nan)
@@ -307,9 +308,10 @@ def usable_readings(joints, t, gyro, hall_v, params):
                     g[c] = np.nan
             else:
                 g_rep[c] = 0
+        g_miss = np.where(np.isnan(g), g_miss + dt[k], 0.0)
         used = g.copy()
         for c, mates in order.items():
-            if np.isnan(used[c]):
+            if np.isnan(used[c]) and g_miss[c] > H["HOLD_S"]:
                 for other in mates:
                     if not np.isnan(g[other]):
                         used[c] = g[other]

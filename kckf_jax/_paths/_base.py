@@ -11,6 +11,7 @@ applies runs.
 from __future__ import annotations
 
 import abc
+import functools
 
 import equinox as eqx
 import jax
@@ -18,6 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
+from .._health import screened_series
 from .._kernel import Estimate, FilterState, SensorSeries
 from .._model import FILTER_METHODS
 from .._params import Params
@@ -68,9 +70,8 @@ def is_traced(*trees) -> bool:
 # ---------------------------------------------------------------------------- regularity
 def readings_present(params, gyro, hall_v, xp=jnp):
     """Per row (any leading axes): whether every used gyro reading (``Robot.used_gyro_index``)
-    is there, and whether every Hall reading is, as the filter uses them (``_screen.screen``,
-    the kernel's ``plausible``: a faulty reading is missing, a missing gyro reading may be
-    stood in for). ``params``: anything with ``robot``, ``limits`` and ``hall_coeffs``
+    is there, and whether every Hall reading is, each judged alone (``_screen.screen``: a
+    faulty reading is missing). ``params``: anything with ``robot``, ``limits`` and ``hall_coeffs``
     (``Params``). NumPy (``xp=np``: one packet in the streaming filter) or JAX (a
     recording, on the device)."""
     gyro, hall_v = screen(params, gyro, hall_v, xp)[:2]
@@ -93,16 +94,24 @@ def _layout(params: Params) -> _Layout:
     return _Layout(params.robot, params.limits, coeffs)
 
 
-@jax.jit
-def _regularity(layout: _Layout, dt: Float[Array, "*B T"], gyro: Float[Array, "*B T G"],
+@functools.partial(jax.jit, static_argnums=0)
+def _regularity(how: str, params, dt: Float[Array, "*B T"], gyro: Float[Array, "*B T G"],
                 hall_v: Float[Array, "*B T M"]
                 ) -> tuple[Float[Array, ""], Float[Array, ""], Bool[Array, ""], Bool[Array, ""]]:
     """On the device, one small transfer back: the largest deviation of a time step (rows
     after the first) from the first trial's second one, that step, and whether every used
-    gyro reading and every Hall reading is there."""
+    gyro reading and every Hall reading is there as the filter uses them: judged over time
+    (``how="over_time"``: ``_health.screened_series``, the paths' own screening), row by row
+    (``"rows"``: ``readings_present``) or, for readings already screened, as they are."""
     dt2 = jnp.reshape(dt, (-1, dt.shape[-1]))
     first = dt2[0, 1]
-    gyro_ok, hall_ok = readings_present(layout, gyro, hall_v)
+    if how == "over_time":
+        gyro, hall_v, _ = screened_series(params, dt, gyro, hall_v)
+    if how == "rows":
+        gyro_ok, hall_ok = readings_present(params, gyro, hall_v)
+    else:
+        used = jnp.take(gyro, jnp.asarray(params.robot.used_gyro_index), axis=-1)
+        gyro_ok, hall_ok = jnp.isfinite(used).all(axis=-1), jnp.isfinite(hall_v).all(axis=-1)
     return jnp.max(jnp.abs(dt2[:, 1:] - first)), first, gyro_ok.all(), hall_ok.all()
 
 
@@ -117,8 +126,17 @@ def regular_step(params: Params, series: SensorSeries) -> tuple[float | None, st
         return None, "fewer than two rows"
     # Concrete data inside a caller's trace (a jitted loss of the parameters that closes
     # over its recording) are still checked: evaluated now, not staged into the trace.
+    # Judged as the paths will judge them: over time where the parameters are known (a Hall
+    # sensor the health monitor isolates makes a recording irregular), row by row where a
+    # caller's trace holds them.
+    if series.screened:
+        how, p = "as_is", _Layout(params.robot, params.limits, None)
+    elif is_traced(params):
+        how, p = "rows", _layout(params)
+    else:
+        how, p = "over_time", params
     with jax.ensure_compile_time_eval():
-        dev, first, gyro_ok, hall_ok = _regularity(_layout(params), series.dt, series.gyro,
+        dev, first, gyro_ok, hall_ok = _regularity(how, p, series.dt, series.gyro,
                                                    series.hall_v)
     dev, first = float(dev), float(first)
     if not (dev <= STEP_TOL_S and first > 0):  # also false for a NaN step

@@ -388,7 +388,7 @@ def stream_step_fn(params: Params, method: str, health: bool = False):
         inputs = SensorSeries(x[0], x[1:1 + G], x[1 + G:])
         if health:
             state, h = state
-            used = screen(p, inputs.gyro, inputs.hall_v, stand_ins=False)
+            used = screen(p, inputs.gyro, inputs.hall_v)
             h, gyro, hall_v, g_code, h_code = health_step(p, h, inputs.dt, used.gyro,
                                                           used.hall_v)
             inputs = SensorSeries(inputs.dt, gyro, hall_v)

@@ -145,7 +145,7 @@ class PacketParser:
         kinds = {i: "not_a_number" for i, _ in problems}
         if self.params is not None:
             with np.errstate(invalid="ignore"):
-                used = screen(self.params, arr[: self._G], arr[self._G:], np, stand_ins=False)
+                used = screen(self.params, arr[: self._G], arr[self._G:], np)
             codes = np.r_[used.gyro_code, used.hall_code]
             for i in map(int, np.flatnonzero(codes)):
                 kind = FAULT_KINDS[codes[i] - 1]
