@@ -35,6 +35,7 @@ parameters: evaluated on ``stop_gradient``-ed values) and, packet by packet, the
 
 from __future__ import annotations
 
+import functools
 from typing import NamedTuple
 
 import jax
@@ -45,7 +46,7 @@ from ._hall import hall_exponentials
 from ._screen import SATURATED, screen, stand_in
 
 #: Codes after ``_screen.FAULT_KINDS``' (1-4; a clipped gyro is ``SATURATED``).
-NOISY, STUCK = 5, 6
+NOISY, STUCK, BIAS_STEP = 5, 6, 7
 
 REF_TAU_S = 0.5  # the reference's pull towards the trusted sensors
 ROUGH_TAU_S = 0.05  # roughness average: a few samples at 100 Hz
@@ -63,6 +64,17 @@ CLIP_REPEATS = 5
 CLIP_PEAK_FRACTION = 0.9  # ... within 10 % of the channel's largest magnitude so far ...
 CLIP_MIN_RAD_S = 0.5  # ... and above this (a still robot's gyro may repeat itself)
 HOLD_S = 0.05  # a gyro reading missing longer than this is stood in for
+# A gyro whose bias steps: its difference from a gyro measuring the same rate moves from its
+# usual value (averaged over PAIR_SLOW_S) by more than BIAS_STEP_RAD_S (averaged over
+# PAIR_FAST_S; clean simulated pairs stay within 0.016 rad/s, a 0.2 rad/s step shows as
+# 0.16), and the joints it drives drift from their Hall sensors (their mean residual moves by
+# BIAS_EVIDENCE_RAD over CM_FAST_S against CM_SLOW_S, twice as far as the other gyro's joints:
+# 4.3-4.7 deg against 0.5-1.9 deg for a 0.2 rad/s step; clean joints move up to 4 deg, so the
+# comparison with the other gyro decides, not the size alone).
+PAIR_FAST_S, PAIR_SLOW_S = 0.25, 5.0
+BIAS_STEP_RAD_S = 0.05
+CM_FAST_S, CM_SLOW_S = 0.3, 5.0
+BIAS_EVIDENCE_RAD = 2.0 * np.pi / 180.0
 
 
 class Health(NamedTuple):
@@ -71,7 +83,10 @@ class Health(NamedTuple):
     roughness, how long the voltage has been unchanged and how far the joint moved since,
     whether the sensor is isolated and how long it has been calm; per gyro channel (``G``)
     the last rate used (held), the last reading, how many readings in a row have repeated it
-    the largest magnitude read so far, and how long it has had no reading it uses."""
+    the largest magnitude read so far, how long it has had no reading it uses, its
+    difference from its first stand-in averaged fast and slow, whether its bias stepped and
+    for how long it has agreed again; per joint axis the mean residual of its Hall sensors
+    against the reference, averaged fast and slow."""
 
     ref: object
     ref_ok: object
@@ -87,6 +102,12 @@ class Health(NamedTuple):
     g_repeat: object
     g_peak: object
     g_missing_s: object
+    d_fast: object
+    d_slow: object
+    bias_bad: object
+    bias_calm_s: object
+    cm_fast: object
+    cm_slow: object
 
 
 def init_health(robot, dtype, xp=jnp, batch=()) -> Health:
@@ -98,7 +119,18 @@ def init_health(robot, dtype, xp=jnp, batch=()) -> Health:
     return Health(full(J, 0.0), full(J, False, bool), full(M, np.nan), full(M, np.nan),
                   full(M, 0.0), full(M, 0.0), full(M, 0.0), full(M, False, bool),
                   full(M, 0.0), full(G, 0.0), full(G, np.nan), full(G, 0.0), full(G, 0.0),
-                  full(G, 0.0))
+                  full(G, 0.0), full(G, np.nan), full(G, np.nan), full(G, False, bool),
+                  full(G, 0.0), full(J, np.nan), full(J, np.nan))
+
+
+@functools.lru_cache(maxsize=64)
+def _pairs(robot):
+    """Per gyro channel its first stand-in (``Robot.gyro_stand_ins``; -1: none, or a channel
+    no rate uses), and ``|W|`` (``J x G``): which channels each joint axis's rate reads."""
+    used = set(int(i) for i in robot.used_gyro_index)
+    mate = np.array([m[0] if (c in used and m) else -1
+                     for c, m in enumerate(robot.gyro_stand_ins)])
+    return mate, np.abs(robot.rate_map[: robot.n_joint_axes])
 
 
 def _curve(params, xp):
@@ -136,12 +168,33 @@ def health_step(params, h: Health, dt, gyro, hall_v, xp=jnp):
     flat = read & (repeat >= CLIP_REPEATS) & (g_abs >= CLIP_PEAK_FRACTION * peak) & (
         g_abs >= CLIP_MIN_RAD_S)
     g_read = xp.where(flat, np.nan, gyro)
+    # A gyro whose bias stepped (the module docstring): not used while it disagrees with the
+    # gyro that measures the same rate; the joints' residuals of the row before decide which
+    # of the two it is.
+    mate, W = _pairs(robot)
+    W = np.asarray(W, dtype)
+    has = mate >= 0
+    d = xp.where(has, g_read - g_read[..., np.maximum(mate, 0)], np.nan)
+    fin = xp.isfinite(d)
+    d_fast = xp.where(fin, xp.where(xp.isnan(h.d_fast), d, h.d_fast + xp.minimum(
+        1.0, dt / PAIR_FAST_S) * (d - h.d_fast)), h.d_fast)
+    either = h.bias_bad | (h.bias_bad[..., np.maximum(mate, 0)] & has)
+    d_slow = xp.where(fin & ~either, xp.where(xp.isnan(h.d_slow), d, h.d_slow + xp.minimum(
+        1.0, dt / PAIR_SLOW_S) * (d - h.d_slow)), h.d_slow)
+    dev = xp.abs(d_fast - d_slow)
+    shift = xp.abs(h.cm_fast - h.cm_slow)
+    evidence = xp.sum(xp.where(xp.isnan(shift), 0.0, shift)[..., :, None] * W, axis=-2)
+    stepped = has & (dev > BIAS_STEP_RAD_S) & (evidence >= BIAS_EVIDENCE_RAD) & (
+        evidence >= 2.0 * evidence[..., np.maximum(mate, 0)])
+    bias_calm = xp.where(h.bias_bad & (dev < 0.5 * BIAS_STEP_RAD_S), h.bias_calm_s + dt, 0.0)
+    bias_bad = (h.bias_bad & (bias_calm < READMIT_S)) | stepped
+    g_code = xp.where(flat, SATURATED, xp.where(bias_bad & read, BIAS_STEP, 0)).astype(xp.int8)
+    g_read = xp.where(bias_bad, np.nan, g_read)
     # A channel without a reading holds its last one for a few samples (as accurate as any
     # other gyro's, whose bias differs); one missing for longer than HOLD_S takes a gyro
     # measuring the same rate (``_screen.stand_in``).
     missing_s = xp.where(xp.isnan(g_read), h.g_missing_s + dt, 0.0)
     g_used = xp.where(missing_s > HOLD_S, stand_in(robot, g_read, xp), g_read)
-    g_code = xp.where(flat, SATURATED, 0).astype(xp.int8)
     g_last = xp.where(read, gyro, h.g_last)
     gyro = xp.where(xp.isnan(g_used), h.gyro, g_used)
     rate = gyro[..., plus[:J]] - gyro[..., minus[:J]]  # (.., J) joint rates
@@ -186,8 +239,19 @@ def health_step(params, h: Health, dt, gyro, hall_v, xp=jnp):
     # A missing reading keeps the last residual (the reference goes on with the gyros), so a
     # sensor whose every other reading is dropped is still judged; a gap forgets it.
     last_e = xp.where(ok, angle - ref[..., joint], xp.where(fresh[..., joint], np.nan, h.last_e))
+    # Each joint's mean residual over its used sensors, averaged fast and slow (forgotten at
+    # a gap): how far the gyros' joint rate drifts from the Hall sensors.
+    rsum = xp.sum(xp.where(use, angle - ref[..., joint], 0.0)[..., :, None] * onehot, axis=-2)
+    cm = rsum / xp.maximum(wsum, 1.0)
+    cm_fast = xp.where(gap, np.nan, h.cm_fast)
+    cm_slow = xp.where(gap, np.nan, h.cm_slow)
+    cm_fast = xp.where(have, xp.where(xp.isnan(cm_fast), cm, cm_fast + xp.minimum(
+        1.0, dt / CM_FAST_S) * (cm - cm_fast)), cm_fast)
+    cm_slow = xp.where(have, xp.where(xp.isnan(cm_slow), cm, cm_slow + xp.minimum(
+        1.0, dt / CM_SLOW_S) * (cm - cm_slow)), cm_slow)
     new = Health(ref, ref_ok, xp.where(ok, v, np.nan), last_e, rough,
-                 still, moved, isolated, calm_s, gyro, g_last, repeat, peak, missing_s)
+                 still, moved, isolated, calm_s, gyro, g_last, repeat, peak, missing_s,
+                 d_fast, d_slow, bias_bad, bias_calm, cm_fast, cm_slow)
     code = xp.where(ok & isolated, xp.where(stuck, STUCK, NOISY), 0)
     return new, g_used, xp.where(use, hall_v, np.nan), g_code, code.astype(xp.int8)
 

@@ -41,7 +41,8 @@ from ._limits import SATURATION_FRACTION
 
 #: The kinds of faulty reading, by code (``codes == k + 1`` is ``FAULT_KINDS[k]``; 0: used or
 #: missing).
-FAULT_KINDS = ("out_of_range", "railed", "unreachable", "saturated", "noisy", "stuck")
+FAULT_KINDS = ("out_of_range", "railed", "unreachable", "saturated", "noisy", "stuck",
+               "bias_step")
 OUT_OF_RANGE, RAILED, UNREACHABLE, SATURATED = 1, 2, 3, 4
 #: One line each, for people.
 FAULT_WORDS = {
@@ -51,6 +52,8 @@ FAULT_WORDS = {
     "saturated": "at the gyro's full scale (saturated)",
     "noisy": "changing far more than its joint moves (noise on the wire: _health)",
     "stuck": "unchanged while its joint moves (_health)",
+    "bias_step": "a gyro whose bias stepped: it left the gyro measuring the same rate, and "
+                 "its joints left their Hall sensors (_health)",
 }
 
 
@@ -144,14 +147,22 @@ def fault_stretches(t, codes, names, join_s: float = 1.0) -> list[dict]:
     return out
 
 
-def describe_faults(name: str, stretches: list[dict], limit: int = 4) -> str | None:
-    """One line for people about a recording's faulty readings (``fault_stretches``), or
-    None when there are none."""
+def describe_faults(name: str, stretches: list[dict], limit: int = 6) -> str | None:
+    """One line for people about a recording's faulty readings (``fault_stretches``), by
+    column and kind, or None when there are none."""
     if not stretches:
         return None
-    parts = [f"{f['column']} {f['kind']} at {f['from_s']:.6g}-{f['to_s']:.6g} s "
-             f"(x{f['count']})" for f in stretches[:limit]]
-    more = f" and {len(stretches) - limit} more" if len(stretches) > limit else ""
-    n = sum(f["count"] for f in stretches)
-    return (f"{name}: {n} faulty reading(s) not used: " + ", ".join(parts) + more
+    groups: dict[tuple[str, str], list[dict]] = {}
+    for f in stretches:
+        groups.setdefault((f["column"], f["kind"]), []).append(f)
+    parts = []
+    for (column, kind), fs in list(groups.items())[:limit]:
+        n = sum(f["count"] for f in fs)
+        where = f"{fs[0]['from_s']:.6g}-{fs[-1]['to_s']:.6g} s"
+        if len(fs) > 1:
+            where += f" in {len(fs)} stretches"
+        parts.append(f"{column} {kind} x{n} at {where}")
+    more = f" and {len(groups) - limit} more" if len(groups) > limit else ""
+    total = sum(f["count"] for f in stretches)
+    return (f"{name}: {total} faulty reading(s) not used: " + ", ".join(parts) + more
             + " (docs/faults.md)")

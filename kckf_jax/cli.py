@@ -139,7 +139,7 @@ def cmd_evaluate(args) -> int:
 
         for i, s in enumerate(sessions):
             plot_session(s, {m: angles[m][i] for m in methods}, args.plot, session_name(s.path),
-                         gaps=doc["gaps"].get(s.path, []),
+                         gaps=doc["gaps"].get(s.path, []), faults=doc["faults"][s.path],
                          nis={m: doc["_nis_rows"][m][i] for m in doc["_nis_rows"]})
         _say(args, f"figures in {args.plot}")
     doc.pop("_nis_rows", None)

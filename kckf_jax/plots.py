@@ -38,9 +38,18 @@ def _broken(t: np.ndarray, y: np.ndarray, rows: list[int]) -> tuple[np.ndarray, 
             np.insert(np.asarray(y, np.float64), rows, np.nan, axis=0))
 
 
+def _marks(column: str, angle: str) -> bool:
+    """Whether a faulty ``column``'s stretch is marked on ``angle``'s axes: a Hall sensor on
+    its joint's (``hall1_x_l`` on ``theta1_x``), a gyro on every angle about its axis."""
+    if column.startswith("hall"):
+        return angle == "theta" + column[len("hall"):-2]
+    return angle.endswith("_" + column[-1])
+
+
 def plot_session(
     session: Session, angles: Mapping[str, np.ndarray], out_dir: str, name: str,
     gaps: list[dict] = (), nis: Mapping[str, np.ndarray] | None = None,
+    faults: list[dict] = (),
 ) -> list[str]:
     """Estimates of every method against motion capture, one figure for the joints (Fig. 5
     style) and one for the torso angles (Fig. 6 style). Returns the files written.
@@ -54,6 +63,9 @@ def plot_session(
             shaded, and no line is drawn across them.
         nis: ``{method: (T,) mean normalised innovation squared per row}``: a third figure,
             the NIS over time (a 1 s running mean) against its ideal 1.
+        faults: the faulty readings' stretches (``"faults"`` of ``kckf evaluate --json``):
+            a Hall sensor's marked on its joint's axes, a gyro's on every angle about its
+            axis, each with its column and kind.
     """
     plt = _plt()
     os.makedirs(out_dir, exist_ok=True)
@@ -82,6 +94,17 @@ def plot_session(
             for i, g in enumerate(gaps):
                 ax.axvspan(g["t_s"] - t0, g["t_s"] - t0 + g["length_s"], color="0.85",
                            label=f"gap ({g['action']})" if i == 0 else None)
+            shown = set()
+            for f in faults:
+                if _marks(f["column"], robot.angle_names[k]):
+                    key = f"{f['column']} {f['kind']}"
+                    hall = f["column"].startswith("hall")
+                    ax.axvspan(f["from_s"] - t0, max(f["to_s"], f["from_s"] + 0.05) - t0,
+                               color="C1" if hall else "C4", alpha=0.3 if hall else 0.12,
+                               lw=0, label=None if key in shown else f"not used: {key}")
+                    shown.add(key)
+            if shown and k != idx[0]:
+                ax.legend(loc="lower right", fontsize=7)
         axes[0, 0].legend(loc="upper right", ncol=6, fontsize=8)
         axes[-1, 0].set_xlabel("time (s)")
         fig.tight_layout()

@@ -267,6 +267,14 @@ def usable_readings(joints, t, gyro, hall_v, params):
 
     * a gyro reading equal to the channel's last CLIP_REPEATS readings, at 90 % or more of the
       largest magnitude the channel has read and at least CLIP_MIN_RAD_S, is clipped: not used;
+    * a gyro column a rate uses, with a stand-in (its first), whose difference from it
+      (exponential averages over PAIR_FAST_S and, while neither of the two is flagged,
+      PAIR_SLOW_S) moves by more than BIAS_STEP_RAD_S, while its joints' evidence (the sum,
+      over the joint axes whose rate reads it, of how far the mean residual of the joint's
+      used Hall sensors, averaged over CM_FAST_S, is from its average over CM_SLOW_S, as of
+      the row before) is at least BIAS_EVIDENCE_RAD and twice its stand-in's, has a bias
+      step: not used until the difference is back within half of BIAS_STEP_RAD_S for
+      READMIT_S;
     * a gyro column a rate uses without a reading for more than HOLD_S (summed time steps)
       takes its first stand-in's (``_stand_in_order``); the rates below hold a column's
       last value;
@@ -284,13 +292,21 @@ def usable_readings(joints, t, gyro, hall_v, params):
     """
     L = layout(joints)
     J, M, G = L["J"], L["M"], L["n_gyro"]
-    H = params["health"]
     gyro, hall_v = _row_rules(joints, gyro, hall_v, params)
+    H = params.get("health")
+    if H is None:  # the paper's filter alone (this module's own checks)
+        return gyro, hall_v
     order = _stand_in_order(joints)
     dt = _dt(t)
     T_len = len(t)
     g_out, v_out = np.full_like(gyro, np.nan), hall_v.copy()
     g_last, g_rep, g_peak, g_miss = np.full(G, np.nan), np.zeros(G), np.zeros(G), np.zeros(G)
+    mate = {c: (mates[0] if mates else -1) for c, mates in order.items()}
+    d_fast, d_slow = np.full(G, np.nan), np.full(G, np.nan)
+    bad, bad_calm = np.zeros(G, bool), np.zeros(G)
+    cm_fast, cm_slow = np.full(J, np.nan), np.full(J, np.nan)
+    uses = {c: [j for j in range(J) if c in (L["rate_plus"][j], L["rate_minus"][j])]
+            for c in range(G)}
     hold = np.zeros(G)
     ref, ref_ok = np.zeros(J), np.zeros(J, bool)
     last_v, last_e = np.full(M, np.nan), np.full(M, np.nan)
@@ -308,6 +324,30 @@ def usable_readings(joints, t, gyro, hall_v, params):
                     g[c] = np.nan
             else:
                 g_rep[c] = 0
+        evid = np.zeros(G)
+        for c in range(G):
+            for j in uses[c]:
+                if np.isfinite(cm_fast[j]) and np.isfinite(cm_slow[j]):
+                    evid[c] += abs(cm_fast[j] - cm_slow[j])
+        was = bad.copy()
+        for c in range(G):
+            m = mate.get(c, -1)
+            if m < 0:
+                continue
+            d = g[c] - g[m]
+            if np.isfinite(d):
+                f = min(1.0, dt[k] / H["PAIR_FAST_S"])
+                d_fast[c] = d if np.isnan(d_fast[c]) else d_fast[c] + f * (d - d_fast[c])
+                if not (was[c] or was[m]):
+                    f = min(1.0, dt[k] / H["PAIR_SLOW_S"])
+                    d_slow[c] = d if np.isnan(d_slow[c]) else d_slow[c] + f * (d - d_slow[c])
+            dev = abs(d_fast[c] - d_slow[c])
+            stepped = (dev > H["BIAS_STEP_RAD_S"] and evid[c] >= H["BIAS_EVIDENCE_RAD"]
+                       and evid[c] >= 2 * evid[m])
+            bad_calm[c] = bad_calm[c] + dt[k] if was[c] and dev < 0.5 * H["BIAS_STEP_RAD_S"] \
+                else 0.0
+            bad[c] = (was[c] and bad_calm[c] < H["READMIT_S"]) or stepped
+        g[bad] = np.nan
         g_miss = np.where(np.isnan(g), g_miss + dt[k], 0.0)
         used = g.copy()
         for c, mates in order.items():
@@ -368,6 +408,13 @@ def usable_readings(joints, t, gyro, hall_v, params):
                 else:
                     ref[j] += min(1.0, dt[k] / H["REF_TAU_S"]) * (mean - ref[j])
             ref_ok[j] = (ref_ok[j] and not gap) or bool(mine)
+            if gap:
+                cm_fast[j], cm_slow[j] = np.nan, np.nan
+            if mine:
+                cm = float(np.mean(mine)) - ref[j]
+                for avg, tau in ((cm_fast, H["CM_FAST_S"]), (cm_slow, H["CM_SLOW_S"])):
+                    avg[j] = cm if np.isnan(avg[j]) else \
+                        avg[j] + min(1.0, dt[k] / tau) * (cm - avg[j])
         for m in range(M):
             j = L["sensor_joint_axis"][m]
             if np.isfinite(angle[m]):
