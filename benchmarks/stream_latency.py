@@ -95,7 +95,7 @@ def in_process(s, pk, export_path) -> dict:
     # packets the covariance has converged and packets take the host path.
     reg = simulate(s.robot, "cyclic", seed=4, duration_s=80.0, drop_prob=0.0)
     reg.t = np.arange(reg.n_steps) * 0.01
-    sf = StreamingFilter(Params.paper_defaults(reg.robot, reg.hall_models))
+    sf = StreamingFilter(Params.paper_defaults(reg.robot, reg.hall_models), host_path=True)
     sf.warmup()
     parsed = [parser.parse(p) for p in packets(reg)]
     warm = sf.host_after

@@ -109,17 +109,6 @@ class _HostMap:
 HOST_CHECK_EVERY = 64
 
 
-class _HostParams:
-    """What ``_health.health_step`` reads of ``Params``, as NumPy arrays in the parameters'
-    precision (no transfer from the device per packet)."""
-
-    def __init__(self, params: Params):
-        dtype = params.log_q.dtype
-        self.robot = params.robot
-        self.hall_coeffs = tuple(np.asarray(c, dtype) for c in params.hall_coeffs)
-        self.sigma_hall_v = np.asarray(params.sigma_hall_v, dtype)
-
-
 class StreamingFilter:
     """The batch filter's ``step``, one packet at a time, compiled once.
 
@@ -131,16 +120,23 @@ class StreamingFilter:
             (``"predict"``: the covariance grows with it) or restarted from the initial state
             at this packet (``"restart"``, or a gap longer than ``max_predict_s``, default
             ``GapPolicy``'s 1 s, or one whose prediction overflows).
-        host_path: allow the host path (below).
+        host_path: allow the host path (below; off by default: it skips the sensors'
+            health over time).
         steady: the ``Steady`` path whose constants the host path follows (its head length
             and convergence tolerance).
 
     The state stays on the device between packets; per packet, one array of readings goes in
-    and one array of estimates comes out. On CPU, Python's dispatch of the jitted call
-    dominates the latency: ``low_latency()`` turns off JAX's async dispatch, which the
-    ``kckf stream`` command does (see benchmarks/README.md).
+    and one array of estimates comes out. The step is ``kckf export``'s: it judges every
+    reading as the batch filter does (``_screen``, and the sensors' health over time,
+    ``_health``, whose state it carries), and the packet's record names what it did not use.
+    On CPU, Python's dispatch of the jitted call dominates the latency: ``low_latency()``
+    turns off JAX's async dispatch, which the ``kckf stream`` command does (see
+    benchmarks/README.md).
 
-    **Host path** (``host_path=True``, the KCKF with the constant Hall noise model): once the
+    **Host path** (``host_path=True``, the KCKF with the constant Hall noise model; for a
+    trusted regular stream whose latency matters more than the sensors' health over time,
+    which it does not follow: each reading is still judged alone, and the health monitor
+    starts afresh when the device step takes over again): once the
     packets arrive at a constant time step with every reading and the covariance has
     converged (after ``steady.head_rows`` such packets, checked every ``HOST_CHECK_EVERY``
     with the steady path's own convergence measure and tolerance), the filter is the steady
@@ -158,16 +154,13 @@ class StreamingFilter:
 
     def __init__(self, params: Params, method: str = "kckf", *, gap_s: float = 0.5,
                  on_gap: str = "predict", max_predict_s: float | None = None,
-                 host_path: bool = True, steady: Steady = Steady()):
+                 host_path: bool = False, steady: Steady = Steady()):
         check_method(method)
         self.params, self.method, self.robot = params, method, params.robot
         # Packets that did not come through a parser given these parameters are screened
         # here, as the filter's step would (``_screen``): the host path must never see a
         # reading the step would not use.
         self._checker = PacketParser(params.robot, params=params)
-        # The sensors' health over time, packet by packet, as the batch filter's (``_health``)
-        # in the same precision, on host copies of the parameters it reads.
-        self._health_params = _HostParams(params)
         # The batch filter's gap policy (the same threshold and options: GapPolicy).
         self.gaps = GapPolicy(float(gap_s), on_gap,
                               None if max_predict_s is None else float(max_predict_s))
@@ -178,7 +171,10 @@ class StreamingFilter:
         self._estimated = estimated(self.robot, method)
         self._fn, self._flatten, self._unflatten = _compiled_step(params, method)
         self._x = np.empty(1 + self._G + self._M, dtype=self.dtype)
-        self._initial = jax.device_put(self._flatten(init_state(params, method)))
+        self._fresh_health = init_health(self.robot, self.dtype)
+        self._initial = jax.device_put(self._flatten((init_state(params, method),
+                                                      self._fresh_health)))
+        self._fault_names = self.robot.gyro_names + self.robot.hall_names
         self._host_ok = host_path and steady.model_reason(params, method) is None
         self._used = self.robot.used_gyro_index
         self._tol = steady.tol(self.dtype)
@@ -189,7 +185,6 @@ class StreamingFilter:
     def reset(self) -> None:
         """Back to the initial state (before the first packet)."""
         self._state = self._initial
-        self._health = init_health(self.robot, self.dtype, np)
         self.t_prev: float | None = None
         self._host: _HostMap | None = None
         self._regular, self._last_dt, self._P_check = 0, None, None
@@ -200,7 +195,7 @@ class StreamingFilter:
         self._x[:] = 0.0
         jax.block_until_ready(self._fn(self._state, self._x))
         if self._host_ok:
-            _HostMap(self.params, self.method, self._unflatten(self._state).P, 0.01)
+            _HostMap(self.params, self.method, self._unflatten(self._state)[0].P, 0.01)
         self.reset()
 
     @property
@@ -220,7 +215,7 @@ class StreamingFilter:
         host path's state)."""
         if self._host is not None:
             return self._host_state()
-        return self._unflatten(self._state)
+        return self._unflatten(self._state)[0]
 
     def _host_state(self) -> FilterState:
         host = self._host
@@ -230,7 +225,7 @@ class StreamingFilter:
                            jnp.asarray(hold, self.dtype))
 
     def _leave_host(self) -> None:
-        self._state = jax.device_put(self._flatten(self._host_state()))
+        self._state = jax.device_put(self._flatten((self._host_state(), self._fresh_health)))
         self._host = None
         self._regular, self._last_dt, self._P_check = 0, None, None
 
@@ -249,7 +244,7 @@ class StreamingFilter:
         phase = self._regular % HOST_CHECK_EVERY
         if self._regular < max(HOST_CHECK_EVERY, self._min_regular) or phase > 1:
             return
-        state = self._unflatten(self._state)
+        state = self._unflatten(self._state)[0]
         P = np.asarray(state.P, np.float64)
         if phase == 0:
             self._P_check = P
@@ -279,9 +274,6 @@ class StreamingFilter:
             if action == "restart":
                 self.reset()
                 dt = 0.0
-        self._judge(dt, pkt)
-        if pkt.status == "masked" and status == "ok":
-            status, note = "masked", pkt.note
         out = self._run(dt, pkt)
         if out is None and extra.get("gap") == "predict":
             # Predicting across this gap overflowed: start again at this packet instead.
@@ -291,37 +283,29 @@ class StreamingFilter:
         if out is None:
             return self._record(pkt.t, "rejected", "the update was not finite; state kept")
         self.t_prev = pkt.t
-        rec = self._record(pkt.t, status, note, out)
+        angles, codes = out
+        if codes is not None and codes.any():  # what the step did not use, named
+            bad = {self._fault_names[i]: FAULT_KINDS[codes[i] - 1]
+                   for i in map(int, np.flatnonzero(codes))}
+            new = {n: k for n, k in bad.items() if (pkt.faults or {}).get(n) != k}
+            pkt.faults = {**(pkt.faults or {}), **bad}
+            pkt.faulty = tuple(dict.fromkeys(pkt.faulty + tuple(bad)))
+            if new:
+                text = "not used: " + "; ".join(f"{n} {k}" for n, k in new.items())
+                note = " | ".join(x for x in (note, text) if x)
+            status = "masked" if status == "ok" else status
+        rec = self._record(pkt.t, status, note, angles)
         rec.update(extra)
         return rec
 
-    def _judge(self, dt: float, pkt: Packet) -> None:
-        """The sensors' health (``_health``), as the batch filter's: a clipped gyro's and an
-        isolated Hall sensor's readings are made missing in ``pkt`` and named in its note and
-        ``faults``, and a gyro measuring the same rate stands in for a missing one."""
-        h, gyro, hall, g_code, h_code = health_step(
-            self._health_params, self._health, dt, pkt.gyro.astype(self.dtype),
-            pkt.hall_v.astype(self.dtype), np)
-        self._health = h
-        pkt.gyro = np.asarray(gyro, np.float64)
-        code = np.r_[g_code, h_code]
-        if code.any():
-            names = self.robot.gyro_names + self.robot.hall_names
-            bad = {names[i]: FAULT_KINDS[int(code[i]) - 1] for i in np.flatnonzero(code)}
-            pkt.hall_v = np.where(np.isnan(hall), np.nan, pkt.hall_v)
-            pkt.status = "masked"
-            pkt.faults = {**(pkt.faults or {}), **bad}
-            pkt.faulty = tuple(dict.fromkeys(pkt.faulty + tuple(bad)))
-            text = "not used: " + "; ".join(f"{n} {k}" for n, k in bad.items())
-            pkt.note = " | ".join(x for x in (pkt.note, text) if x)
-
-    def _run(self, dt: float, pkt: Packet) -> np.ndarray | None:
+    def _run(self, dt: float, pkt: Packet) -> tuple[np.ndarray, np.ndarray | None] | None:
         """One step: on the host path when it applies, else on the device; the new state is
-        kept only when it is finite."""
+        kept only when it is finite. Returns the angles and each reading's fault code (the
+        device step's; ``None`` on the host path), or ``None``."""
         if self._host is not None:
             angles = self._host.step(dt, pkt.gyro, pkt.hall_v)
             if angles is not None:
-                return angles
+                return angles, None
             self._leave_host()
         x = self._x
         x[0] = dt
@@ -329,12 +313,13 @@ class StreamingFilter:
         x[1 + self._G:] = pkt.hall_v
         state, out = self._fn(self._state, x)
         out = np.asarray(out)
-        if out[-1] < 0.5:
+        K = self._K
+        if out[2 * K] < 0.5:
             return None
         self._state = state
         if self._host_ok:
             self._watch(dt, pkt)
-        return out[: self._K]
+        return out[:K], out[2 * K + 1:].astype(int)
 
     def _record(self, t, status, note="", angles=None) -> dict:
         rec: dict = {"t": t}
@@ -357,11 +342,11 @@ def stream_step_fn(params: Params, method: str, health: bool = False):
     hall_v (M)]``: two arrays in, two out (dispatch cost on CPU grows with every argument). A
     non-finite result (impossible for finite readings, but the stream must survive anything)
     leaves the state as it was and reports ``ok = 0``. ``health``: ``s`` also carries the
-    sensors' health (``_health``) and the step judges each packet's Hall readings first, and
-    the output ends with each reading's fault code (``G + M``: ``_screen.FAULT_KINDS``), so a
-    deployment names them as ``kckf stream`` does (``kckf export``; ``StreamingFilter`` judges
-    on the host and passes ``False``). Returns ``(fn, flatten, unflatten)``;
-    ``StreamingFilter`` jits it, ``kckf export`` serialises it.
+    sensors' health (``_health``: ``(FilterState, Health)`` unflattened) and the step judges
+    each packet's readings first, as the batch filter does, and the output ends with each
+    reading's fault code (``G + M``: ``_screen.FAULT_KINDS``), so the stream and a deployment
+    name them (``StreamingFilter`` and ``kckf export`` both take it). Returns ``(fn,
+    flatten, unflatten)``; ``StreamingFilter`` jits it, ``kckf export`` serialises it.
     """
     G = 3 * params.robot.n_links
     dtype = params.log_q.dtype
@@ -408,7 +393,7 @@ def stream_step_fn(params: Params, method: str, health: bool = False):
 def _compiled_step(params: Params, method: str):
     """``stream_step_fn`` jitted; traced once (a retrace raises, via
     ``eqx.debug.assert_max_traces``)."""
-    fn, flatten, unflatten = stream_step_fn(params, method)
+    fn, flatten, unflatten = stream_step_fn(params, method, health=True)
     return jax.jit(eqx.debug.assert_max_traces(lambda flat, x: fn(flat, x), max_traces=1)), \
         flatten, unflatten
 
