@@ -29,7 +29,7 @@ from ._kernel import SensorSeries, init_state, pad_series
 from ._likelihood import hall_nll
 from ._params import _LEAVES, Params, with_floors
 from ._paths import AbstractPath, Auto, Lanes, Sequential, Steady, as_path, is_traced
-from ._run import choose_path
+from ._run import choose_path, screened
 from ._session import Session, split_at_gaps
 from ._train import (
     AbstractLoss,
@@ -474,6 +474,11 @@ def fit(
     if params.robot != sessions[0].robot:
         raise ValueError(f"initial parameters are for joints {params.robot.spec!r}, the "
                          f"sessions have {sessions[0].robot.spec!r}")
+    # The readings are judged once, with the starting parameters (``_run.screened``: every
+    # reading alone and each sensor over time), not in every step's loss: faulty readings do
+    # not enter the fit, and the health monitor's scan is not paid per step.
+    batch = _screen_batch(params, batch)
+    val = None if val is None else _screen_batch(params, val)
     loss = make_loss(config.loss, params, batch, config.method, chunk, config.nll_weight)
     # The validation loss is not differentiated: no remat needed, and the filter's own path.
     val_loss = (None if val is None else
@@ -496,6 +501,12 @@ def fit(
                    callback=callback, place=lambda x: jax.device_put(x, replicated))
     result.seconds = time.perf_counter() - t0
     return result
+
+
+def _screen_batch(params: Params, batch: Batch) -> Batch:
+    """``batch`` with its series as the filter uses it (``_run.screened``), in place."""
+    series, _ = screened(params, batch.series)
+    return replace(batch, series=series)
 
 
 def fit_info(result: FitResult, sessions: Sequence[Session], val: Sequence[Session],
