@@ -300,7 +300,7 @@ def cmd_stream(args) -> int:
     print(f"kckf stream: listening on {source.description} (method {method}, "
           f"{jnp_name(params)}{extra})", file=sys.stderr, flush=True)
     try:
-        counts = run_stream(source, sink, sf, PacketParser(params.robot, params=params),
+        counts = run_stream(source, sink, sf, PacketParser(params.robot, limits=params.limits),
                             max_packets=args.max_packets, idle_timeout=args.idle_timeout,
                             should_stop=lambda: stop["now"])
     finally:

@@ -157,9 +157,9 @@ class StreamingFilter:
                  host_path: bool = False, steady: Steady = Steady()):
         check_method(method)
         self.params, self.method, self.robot = params, method, params.robot
-        # Packets that did not come through a parser given these parameters are screened
-        # here, as the filter's step would (``_screen``): the host path must never see a
-        # reading the step would not use.
+        # On the host path, packets that did not come through a parser given these parameters
+        # are judged here, as the step would (``_screen``): it must never use a reading the
+        # step would not. The device step judges every packet itself.
         self._checker = PacketParser(params.robot, params=params)
         # The batch filter's gap policy (the same threshold and options: GapPolicy).
         self.gaps = GapPolicy(float(gap_s), on_gap,
@@ -234,7 +234,7 @@ class StreamingFilter:
         check, packet by packet) and, from the steady path's head length on, every
         ``HOST_CHECK_EVERY`` compare the covariance over one step; once it has converged,
         switch to the host path."""
-        gyro_ok, hall_ok = readings_present(self.params, pkt.gyro, pkt.hall_v, np)
+        gyro_ok, hall_ok = readings_present(self._checker.params, pkt.gyro, pkt.hall_v, np)
         complete = dt > 0 and bool(gyro_ok) and bool(hall_ok)
         if complete and self._last_dt is not None and abs(dt - self._last_dt) <= STEP_TOL_S:
             self._regular += 1
@@ -260,8 +260,8 @@ class StreamingFilter:
         """Filter one packet; returns the output record (``t``, angles in rad, ``status``)."""
         if pkt.status not in USED:
             return self._record(pkt.t, pkt.status, pkt.note)
-        if not pkt.screened:
-            pkt = self._checker.check(pkt)
+        if self._host is not None and not pkt.screened:
+            pkt = self._checker.check(pkt)  # the host path must see only usable readings
         if self.t_prev is not None and not pkt.t > self.t_prev:
             return self._record(pkt.t, "out_of_order",
                                 f"t = {pkt.t!r} is not after the previous t = {self.t_prev!r}")

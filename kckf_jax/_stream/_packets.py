@@ -35,6 +35,21 @@ USED = ("ok", "masked", "gap")
 MAX_PACKET_BYTES = 8192
 
 
+@dataclass(frozen=True)
+class HostScreen:
+    """The part of ``Params`` that ``_screen.screen`` reads, as NumPy float64 arrays."""
+
+    robot: Robot
+    limits: SensorLimits
+    hall_coeffs: tuple
+
+
+def host_screen(params) -> HostScreen:
+    """``params`` (``Params``) for judging readings on the host, packet by packet."""
+    return HostScreen(params.robot, params.limits,
+                      tuple(np.asarray(c, np.float64) for c in params.hall_coeffs))
+
+
 @dataclass
 class Packet:
     """One parsed packet: time (s, float64), readings (NaN = missing), status, note, the
@@ -73,7 +88,9 @@ class PacketParser:
         self.robot = robot
         self.max_bytes = max_bytes
         self.limits = params.limits if params is not None else limits
-        self.params = params
+        # What ``screen`` reads of the parameters, as NumPy (a JAX leaf per packet would cost
+        # a dispatch each: ``Params.hall_coeffs`` is computed from the learned logs).
+        self.params = None if params is None else host_screen(params)
         limits = self.limits
         self._names = robot.gyro_names + robot.hall_names
         self._slots = set(self._names)
