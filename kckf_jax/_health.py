@@ -184,8 +184,10 @@ def health_step(params, h: Health, dt, gyro, hall_v, xp=jnp):
     dev = xp.abs(d_fast - d_slow)
     shift = xp.abs(h.cm_fast - h.cm_slow)
     evidence = xp.sum(xp.where(xp.isnan(shift), 0.0, shift)[..., :, None] * W, axis=-2)
+    # (A pair's step is put on one of the two: not on a gyro whose stand-in is already out.)
     stepped = has & (dev > BIAS_STEP_RAD_S) & (evidence >= BIAS_EVIDENCE_RAD) & (
-        evidence >= 2.0 * evidence[..., np.maximum(mate, 0)])
+        evidence >= 2.0 * evidence[..., np.maximum(mate, 0)]) & ~(
+        h.bias_bad[..., np.maximum(mate, 0)])
     bias_calm = xp.where(h.bias_bad & (dev < 0.5 * BIAS_STEP_RAD_S), h.bias_calm_s + dt, 0.0)
     bias_bad = (h.bias_bad & (bias_calm < READMIT_S)) | stepped
     g_code = xp.where(flat, SATURATED, xp.where(bias_bad & read, BIAS_STEP, 0)).astype(xp.int8)

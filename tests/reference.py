@@ -272,9 +272,9 @@ def usable_readings(joints, t, gyro, hall_v, params):
       PAIR_SLOW_S) moves by more than BIAS_STEP_RAD_S, while its joints' evidence (the sum,
       over the joint axes whose rate reads it, of how far the mean residual of the joint's
       used Hall sensors, averaged over CM_FAST_S, is from its average over CM_SLOW_S, as of
-      the row before) is at least BIAS_EVIDENCE_RAD and twice its stand-in's, has a bias
-      step: not used until the difference is back within half of BIAS_STEP_RAD_S for
-      READMIT_S;
+      the row before) is at least BIAS_EVIDENCE_RAD and twice its stand-in's, and whose
+      stand-in was not flagged on the row before, has a bias step: not used until the
+      difference is back within half of BIAS_STEP_RAD_S for READMIT_S;
     * a gyro column a rate uses without a reading for more than HOLD_S (summed time steps)
       takes its first stand-in's (``_stand_in_order``); the rates below hold a column's
       last value;
@@ -343,7 +343,7 @@ def usable_readings(joints, t, gyro, hall_v, params):
                     d_slow[c] = d if np.isnan(d_slow[c]) else d_slow[c] + f * (d - d_slow[c])
             dev = abs(d_fast[c] - d_slow[c])
             stepped = (dev > H["BIAS_STEP_RAD_S"] and evid[c] >= H["BIAS_EVIDENCE_RAD"]
-                       and evid[c] >= 2 * evid[m])
+                       and evid[c] >= 2 * evid[m] and not was[m])
             bad_calm[c] = bad_calm[c] + dt[k] if was[c] and dev < 0.5 * H["BIAS_STEP_RAD_S"] \
                 else 0.0
             bad[c] = (was[c] and bad_calm[c] < H["READMIT_S"]) or stepped
