@@ -154,8 +154,7 @@ def health_step(params, h: Health, dt, gyro, hall_v, xp=jnp):
     robot = params.robot
     dtype = h.ref.dtype
     dt = xp.asarray(dt, dtype)[..., None]
-    (w1, w2), (k1, k2) = _curve(params, xp)[0]
-    sigma_v = _curve(params, xp)[1]
+    ((w1, w2), (k1, k2)), sigma_v = _curve(params, xp)
     plus, minus = robot.rate_pairs
     J = robot.n_joint_axes
     # A gyro clipped below its stated full scale: the same reading, at the largest magnitude

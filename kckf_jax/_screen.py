@@ -44,17 +44,6 @@ from ._limits import SATURATION_FRACTION
 FAULT_KINDS = ("out_of_range", "railed", "unreachable", "saturated", "noisy", "stuck",
                "bias_step")
 OUT_OF_RANGE, RAILED, UNREACHABLE, SATURATED = 1, 2, 3, 4
-#: One line each, for people.
-FAULT_WORDS = {
-    "out_of_range": "outside the physical range",
-    "railed": "railed at an end of the ADC's range (a short or an open wire)",
-    "unreachable": "an angle through its curve no joint can reach",
-    "saturated": "at the gyro's full scale (saturated)",
-    "noisy": "changing far more than its joint moves (noise on the wire: _health)",
-    "stuck": "unchanged while its joint moves (_health)",
-    "bias_step": "a gyro whose bias stepped: it left the gyro measuring the same rate, and "
-                 "its joints left their Hall sensors (_health)",
-}
 
 
 class Screened(NamedTuple):
