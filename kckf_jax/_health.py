@@ -29,8 +29,8 @@ nothing is judged on that step, so a gap or a restart never locks a sensor out.
 The monitor sees only the readings and the parameters, never the Kalman filter's state, so the
 same decisions reach every path (it runs once over a recording before any path, the kernel's
 ``plausible``), the smoother, the likelihood, the fit (its decisions are constants of the
-parameters: evaluated on ``stop_gradient``-ed values) and, packet by packet, the stream
-(``xp=np``). It is written once for NumPy and JAX.
+parameters: evaluated on ``stop_gradient``-ed values) and, packet by packet, the stream and
+the exported step (``health_step`` inside their jitted step, its state in theirs).
 """
 
 from __future__ import annotations
@@ -110,11 +110,11 @@ class Health(NamedTuple):
     cm_slow: object
 
 
-def init_health(robot, dtype, xp=jnp, batch=()) -> Health:
+def init_health(robot, dtype, batch=()) -> Health:
     J, M, G = robot.n_joint_axes, robot.n_hall, 3 * robot.n_links
 
     def full(n, v, dt=dtype):
-        return xp.full(tuple(batch) + (n,), v, dtype=dt)
+        return jnp.full(tuple(batch) + (n,), v, dtype=dt)
 
     return Health(full(J, 0.0), full(J, False, bool), full(M, np.nan), full(M, np.nan),
                   full(M, 0.0), full(M, 0.0), full(M, 0.0), full(M, False, bool),
@@ -133,19 +133,13 @@ def _pairs(robot):
     return mate, np.abs(robot.rate_map[: robot.n_joint_axes])
 
 
-def _curve(params, xp):
-    coeffs = params.hall_coeffs
-    sigma_v = params.sigma_hall_v
-    if xp is np:
-        coeffs = tuple(np.asarray(c) for c in coeffs)
-        sigma_v = np.asarray(sigma_v)
-    else:
-        coeffs = tuple(jax.lax.stop_gradient(c) for c in coeffs)
-        sigma_v = jax.lax.stop_gradient(sigma_v)
-    return hall_exponentials(*coeffs), sigma_v
+def _curve(params):
+    """Eq. 1's exponentials and the voltage noise, not differentiated (decisions only)."""
+    coeffs = tuple(jax.lax.stop_gradient(c) for c in params.hall_coeffs)
+    return hall_exponentials(*coeffs), jax.lax.stop_gradient(params.sigma_hall_v)
 
 
-def health_step(params, h: Health, dt, gyro, hall_v, xp=jnp):
+def health_step(params, h: Health, dt, gyro, hall_v):
     """One row (``dt`` s, ``gyro`` ``G`` rad/s and ``hall_v`` ``M`` V as ``_screen`` leaves
     them, before any stand-in; any leading axes): ``(state, gyro, hall_v, gyro_code,
     hall_code)``: the new state, the readings the filter uses (a clipped gyro and an isolated
@@ -153,108 +147,108 @@ def health_step(params, h: Health, dt, gyro, hall_v, xp=jnp):
     health code (0; ``SATURATED`` for a gyro, ``NOISY`` or ``STUCK`` for a Hall sensor)."""
     robot = params.robot
     dtype = h.ref.dtype
-    dt = xp.asarray(dt, dtype)[..., None]
-    ((w1, w2), (k1, k2)), sigma_v = _curve(params, xp)
+    dt = jnp.asarray(dt, dtype)[..., None]
+    ((w1, w2), (k1, k2)), sigma_v = _curve(params)
     plus, minus = robot.rate_pairs
     J = robot.n_joint_axes
     # A gyro clipped below its stated full scale: the same reading, at the largest magnitude
     # the channel has read, again and again (a live gyro's noise moves it every sample).
-    gyro = xp.asarray(gyro, dtype)
-    read = xp.isfinite(gyro)
-    g_abs = xp.abs(gyro)
-    repeat = xp.where(read & (gyro == h.g_last), h.g_repeat + 1.0, 0.0)
-    peak = xp.maximum(h.g_peak, xp.where(read, g_abs, 0.0))
+    gyro = jnp.asarray(gyro, dtype)
+    read = jnp.isfinite(gyro)
+    g_abs = jnp.abs(gyro)
+    repeat = jnp.where(read & (gyro == h.g_last), h.g_repeat + 1.0, 0.0)
+    peak = jnp.maximum(h.g_peak, jnp.where(read, g_abs, 0.0))
     flat = read & (repeat >= CLIP_REPEATS) & (g_abs >= CLIP_PEAK_FRACTION * peak) & (
         g_abs >= CLIP_MIN_RAD_S)
-    g_read = xp.where(flat, np.nan, gyro)
+    g_read = jnp.where(flat, np.nan, gyro)
     # A gyro whose bias stepped (the module docstring): not used while it disagrees with the
     # gyro that measures the same rate; the joints' residuals of the row before decide which
     # of the two it is.
     mate, W = _pairs(robot)
     W = np.asarray(W, dtype)
     has = mate >= 0
-    d = xp.where(has, g_read - g_read[..., np.maximum(mate, 0)], np.nan)
-    fin = xp.isfinite(d)
-    d_fast = xp.where(fin, xp.where(xp.isnan(h.d_fast), d, h.d_fast + xp.minimum(
+    d = jnp.where(has, g_read - g_read[..., np.maximum(mate, 0)], np.nan)
+    fin = jnp.isfinite(d)
+    d_fast = jnp.where(fin, jnp.where(jnp.isnan(h.d_fast), d, h.d_fast + jnp.minimum(
         1.0, dt / PAIR_FAST_S) * (d - h.d_fast)), h.d_fast)
     either = h.bias_bad | (h.bias_bad[..., np.maximum(mate, 0)] & has)
-    d_slow = xp.where(fin & ~either, xp.where(xp.isnan(h.d_slow), d, h.d_slow + xp.minimum(
+    d_slow = jnp.where(fin & ~either, jnp.where(jnp.isnan(h.d_slow), d, h.d_slow + jnp.minimum(
         1.0, dt / PAIR_SLOW_S) * (d - h.d_slow)), h.d_slow)
-    dev = xp.abs(d_fast - d_slow)
-    shift = xp.abs(h.cm_fast - h.cm_slow)
-    evidence = xp.sum(xp.where(xp.isnan(shift), 0.0, shift)[..., :, None] * W, axis=-2)
+    dev = jnp.abs(d_fast - d_slow)
+    shift = jnp.abs(h.cm_fast - h.cm_slow)
+    evidence = jnp.sum(jnp.where(jnp.isnan(shift), 0.0, shift)[..., :, None] * W, axis=-2)
     # (A pair's step is put on one of the two: not on a gyro whose stand-in is already out.)
     stepped = has & (dev > BIAS_STEP_RAD_S) & (evidence >= BIAS_EVIDENCE_RAD) & (
         evidence >= 2.0 * evidence[..., np.maximum(mate, 0)]) & ~(
         h.bias_bad[..., np.maximum(mate, 0)])
-    bias_calm = xp.where(h.bias_bad & (dev < 0.5 * BIAS_STEP_RAD_S), h.bias_calm_s + dt, 0.0)
+    bias_calm = jnp.where(h.bias_bad & (dev < 0.5 * BIAS_STEP_RAD_S), h.bias_calm_s + dt, 0.0)
     bias_bad = (h.bias_bad & (bias_calm < READMIT_S)) | stepped
-    g_code = xp.where(flat, SATURATED, xp.where(bias_bad & read, BIAS_STEP, 0)).astype(xp.int8)
-    g_read = xp.where(bias_bad, np.nan, g_read)
+    g_code = jnp.where(flat, SATURATED, jnp.where(bias_bad & read, BIAS_STEP, 0)).astype(jnp.int8)
+    g_read = jnp.where(bias_bad, np.nan, g_read)
     # A channel without a reading holds its last one for a few samples (as accurate as any
     # other gyro's, whose bias differs); one missing for longer than HOLD_S takes a gyro
     # measuring the same rate (``_screen.stand_in``).
-    missing_s = xp.where(xp.isnan(g_read), h.g_missing_s + dt, 0.0)
-    g_used = xp.where(missing_s > HOLD_S, stand_in(robot, g_read, xp), g_read)
-    g_last = xp.where(read, gyro, h.g_last)
-    gyro = xp.where(xp.isnan(g_used), h.gyro, g_used)
+    missing_s = jnp.where(jnp.isnan(g_read), h.g_missing_s + dt, 0.0)
+    g_used = jnp.where(missing_s > HOLD_S, stand_in(robot, g_read), g_read)
+    g_last = jnp.where(read, gyro, h.g_last)
+    gyro = jnp.where(jnp.isnan(g_used), h.gyro, g_used)
     rate = gyro[..., plus[:J]] - gyro[..., minus[:J]]  # (.., J) joint rates
     joint = robot.hall_joint_axis  # (M,) joint axis of every sensor
     gap = dt > RESTART_S
     fresh = gap | ~h.ref_ok
-    ref = h.ref + xp.where(gap, 0.0, dt) * rate
-    step_move = xp.abs(dt * rate)[..., joint]
+    ref = h.ref + jnp.where(gap, 0.0, dt) * rate
+    step_move = jnp.abs(dt * rate)[..., joint]
 
-    ok = xp.isfinite(hall_v)
-    v = xp.where(ok, hall_v, 1.65)
-    e1, e2 = xp.exp(k1 * v), xp.exp(k2 * v)
+    ok = jnp.isfinite(hall_v)
+    v = jnp.where(ok, hall_v, 1.65)
+    e1, e2 = jnp.exp(k1 * v), jnp.exp(k2 * v)
     angle = w1 * e1 + w2 * e2
-    slope = xp.abs(w1 * k1 * e1 + w2 * k2 * e2)
+    slope = jnp.abs(w1 * k1 * e1 + w2 * k2 * e2)
     e = angle - ref[..., joint]  # residual against the reference
-    judged = ok & xp.isfinite(h.last_e) & ~fresh[..., joint]
+    judged = ok & jnp.isfinite(h.last_e) & ~fresh[..., joint]
     expect = (2.0 * (slope * sigma_v) ** 2
               + (MOTION_FRACTION * step_move + MOTION_FLOOR_RAD) ** 2)
-    z = xp.where(judged, (e - h.last_e) ** 2 / expect, 0.0)
-    a = xp.minimum(1.0, dt / ROUGH_TAU_S)
-    rough = xp.where(judged, h.rough + a * (z - h.rough), xp.where(fresh[..., joint], 0.0,
+    z = jnp.where(judged, (e - h.last_e) ** 2 / expect, 0.0)
+    a = jnp.minimum(1.0, dt / ROUGH_TAU_S)
+    rough = jnp.where(judged, h.rough + a * (z - h.rough), jnp.where(fresh[..., joint], 0.0,
                                                                   h.rough))
     same = ok & (v == h.last_v)
-    still = xp.where(same, h.still_s + dt, 0.0)
-    moved = xp.where(same, h.moved + step_move, 0.0)
+    still = jnp.where(same, h.still_s + dt, 0.0)
+    moved = jnp.where(same, h.moved + step_move, 0.0)
     stuck = same & (still >= STUCK_S) & (moved >= STUCK_MOVE_RAD)
     noisy = rough > ROUGH_HIGH
     calm = ok & ~noisy & ~stuck & (rough < ROUGH_LOW)
-    calm_s = xp.where(h.isolated & calm, h.calm_s + dt, 0.0)
+    calm_s = jnp.where(h.isolated & calm, h.calm_s + dt, 0.0)
     isolated = (h.isolated & (calm_s < READMIT_S)) | noisy | stuck
     use = ok & ~isolated
 
     # The reference: set from the trusted sensors where it starts, else pulled towards them.
     onehot = np.asarray(joint[:, None] == np.arange(J)[None, :], dtype)  # (M, J)
-    wsum = xp.sum(use[..., :, None] * onehot, axis=-2)
-    asum = xp.sum(xp.where(use, angle, 0.0)[..., :, None] * onehot, axis=-2)
-    mean = asum / xp.maximum(wsum, 1.0)
+    wsum = jnp.sum(use[..., :, None] * onehot, axis=-2)
+    asum = jnp.sum(jnp.where(use, angle, 0.0)[..., :, None] * onehot, axis=-2)
+    mean = asum / jnp.maximum(wsum, 1.0)
     have = wsum > 0
-    pull = xp.minimum(1.0, dt / REF_TAU_S)
-    ref = xp.where(have & fresh, mean, xp.where(have, ref + pull * (mean - ref), ref))
+    pull = jnp.minimum(1.0, dt / REF_TAU_S)
+    ref = jnp.where(have & fresh, mean, jnp.where(have, ref + pull * (mean - ref), ref))
     ref_ok = (h.ref_ok & ~gap) | have
     # A missing reading keeps the last residual (the reference goes on with the gyros), so a
     # sensor whose every other reading is dropped is still judged; a gap forgets it.
-    last_e = xp.where(ok, angle - ref[..., joint], xp.where(fresh[..., joint], np.nan, h.last_e))
+    last_e = jnp.where(ok, angle - ref[..., joint], jnp.where(fresh[..., joint], np.nan, h.last_e))
     # Each joint's mean residual over its used sensors, averaged fast and slow (forgotten at
     # a gap): how far the gyros' joint rate drifts from the Hall sensors.
-    rsum = xp.sum(xp.where(use, angle - ref[..., joint], 0.0)[..., :, None] * onehot, axis=-2)
-    cm = rsum / xp.maximum(wsum, 1.0)
-    cm_fast = xp.where(gap, np.nan, h.cm_fast)
-    cm_slow = xp.where(gap, np.nan, h.cm_slow)
-    cm_fast = xp.where(have, xp.where(xp.isnan(cm_fast), cm, cm_fast + xp.minimum(
+    rsum = jnp.sum(jnp.where(use, angle - ref[..., joint], 0.0)[..., :, None] * onehot, axis=-2)
+    cm = rsum / jnp.maximum(wsum, 1.0)
+    cm_fast = jnp.where(gap, np.nan, h.cm_fast)
+    cm_slow = jnp.where(gap, np.nan, h.cm_slow)
+    cm_fast = jnp.where(have, jnp.where(jnp.isnan(cm_fast), cm, cm_fast + jnp.minimum(
         1.0, dt / CM_FAST_S) * (cm - cm_fast)), cm_fast)
-    cm_slow = xp.where(have, xp.where(xp.isnan(cm_slow), cm, cm_slow + xp.minimum(
+    cm_slow = jnp.where(have, jnp.where(jnp.isnan(cm_slow), cm, cm_slow + jnp.minimum(
         1.0, dt / CM_SLOW_S) * (cm - cm_slow)), cm_slow)
-    new = Health(ref, ref_ok, xp.where(ok, v, np.nan), last_e, rough,
+    new = Health(ref, ref_ok, jnp.where(ok, v, np.nan), last_e, rough,
                  still, moved, isolated, calm_s, gyro, g_last, repeat, peak, missing_s,
                  d_fast, d_slow, bias_bad, bias_calm, cm_fast, cm_slow)
-    code = xp.where(ok & isolated, xp.where(stuck, STUCK, NOISY), 0)
-    return new, g_used, xp.where(use, hall_v, np.nan), g_code, code.astype(xp.int8)
+    code = jnp.where(ok & isolated, jnp.where(stuck, STUCK, NOISY), 0)
+    return new, g_used, jnp.where(use, hall_v, np.nan), g_code, code.astype(jnp.int8)
 
 
 def monitor(params, dt, gyro, hall_v):
@@ -263,7 +257,7 @@ def monitor(params, dt, gyro, hall_v):
     one's health code."""
     dtype = jnp.result_type(hall_v.dtype, jnp.float32)
     batch = jnp.shape(dt)[:-1]
-    h0 = init_health(params.robot, dtype, jnp, batch)
+    h0 = init_health(params.robot, dtype, batch)
 
     def body(h, row):
         h, *out = health_step(params, h, *row)

@@ -281,9 +281,9 @@ def filter_sessions(
         dtype_p = p.log_q.dtype
         batch = pad_series([session_series(pieces[j][1], np.float64) for j in members])
         batch = jax.tree_util.tree_map(lambda x, d=dtype_p: jnp.asarray(x, d), batch)
-        if smooth:
-            est = dataclasses.replace(smooth_batch(p, batch, method),
-                                      faults=series_faults(p, batch))
+        if smooth:  # screened once: the smoother's paths take the screened rows as they are
+            screened_batch, faults = screened(p, batch)
+            est = dataclasses.replace(smooth_batch(p, screened_batch, method), faults=faults)
         else:
             est = filter_batch(p, batch, method, path)
         arrays = jax.tree_util.tree_map(np.asarray, est)

@@ -92,7 +92,7 @@ def screen(params, gyro, hall_v, xp=jnp) -> Screened:
     return Screened(g_used, h_used, g_code.astype(xp.int8), h_code.astype(xp.int8))
 
 
-def stand_in(robot, gyro, xp=jnp):
+def stand_in(robot, gyro):
     """Every channel the filters read that has no reading (``... G``) takes the reading of its
     first stand-in (``Robot.gyro_stand_ins``) that has one."""
     used = set(int(i) for i in robot.used_gyro_index)
@@ -102,10 +102,10 @@ def stand_in(robot, gyro, xp=jnp):
         if c in used and mates:
             fill = gyro[..., mates[-1]]
             for m in reversed(mates[:-1]):
-                fill = xp.where(xp.isnan(gyro[..., m]), fill, gyro[..., m])
-            col = xp.where(xp.isnan(col), fill, col)
+                fill = jnp.where(jnp.isnan(gyro[..., m]), fill, gyro[..., m])
+            col = jnp.where(jnp.isnan(col), fill, col)
         cols.append(col)
-    return xp.stack(cols, axis=-1)
+    return jnp.stack(cols, axis=-1)
 
 
 def fault_codes(params, gyro, hall_v, xp=jnp):
