@@ -56,6 +56,7 @@ from ._model import (
     initial_covariance,
     predicted_moments,
     q_blocks,
+    static_take,
     structure,
 )
 from ._params import Params
@@ -228,16 +229,17 @@ def block_inputs(
     dtype = gyro_hold.dtype
     dt = inputs.dt.astype(dtype)
     plus, minus = robot.rate_pairs
-    rates = block_gather(st, gyro_hold[plus] - gyro_hold[minus])
+    rates = block_gather(st, static_take(gyro_hold, plus) - static_take(gyro_hold, minus))
     noise = tuple(block_gather(st, x)
                   for x in q_blocks(params.q, params.angle_rw, params.bias_rw, dt))
     angle, r, valid = hall_measurements(params, inputs.hall_v.astype(dtype))
     h, rh, ok = fused_pairs(angle, r, valid)
     ji = st.joint_index
     pad = ji < 0
-    hb = jnp.where(pad, 0.0, h[np.maximum(ji, 0)])
-    rb = jnp.where(pad, 1.0, rh[np.maximum(ji, 0)])
-    vb = jnp.where(pad, False, ok[np.maximum(ji, 0)])
+    at = np.maximum(ji, 0)
+    hb = jnp.where(pad, 0.0, static_take(h, at))
+    rb = jnp.where(pad, 1.0, static_take(rh, at))
+    vb = jnp.where(pad, False, static_take(ok, at))
     return dt, rates, noise, hb, rb, vb
 
 
@@ -307,8 +309,12 @@ def block_estimate(st, z: BlockState, P: BlockCov) -> Estimate:
     Ta = T[:m1]
     TaP = jnp.sum(Ta[None, :, :, None] * P[:, None, :, :], axis=2)  # (P, m1, Nz)
     var = jnp.sum(TaP * Ta[None], axis=2)
-    bo, so = st.block_of, st.slot_of
-    return Estimate(xb[bo, so], jnp.sqrt(jnp.maximum(var[bo, so], 0.0)), xb[bo, m1 + so])
+    bo, so = np.asarray(st.block_of), np.asarray(st.slot_of)
+    ncol = xb.shape[1]
+    angle = static_take(xb.reshape(-1), bo * ncol + so)
+    bias = static_take(xb.reshape(-1), bo * ncol + m1 + so)
+    std = jnp.sqrt(jnp.maximum(static_take(var.reshape(-1), bo * var.shape[1] + so), 0.0))
+    return Estimate(angle, std, bias)
 
 
 class StepMoments(eqx.Module):
