@@ -28,3 +28,16 @@ def machine() -> dict:
         "devices": [str(d) for d in devices],
         "device_kind": devices[0].device_kind,
     }
+
+
+def require_peers(script: str, modules: tuple[str, ...] = ("dynamax", "filterpy")) -> None:
+    """Exit at once, saying what to install, when a peer library this benchmark compares with
+    is missing (they are the ``bench`` extra, not the package's dependencies)."""
+    import importlib.util
+    import sys
+
+    missing = [m for m in modules if importlib.util.find_spec(m) is None]
+    if missing:
+        sys.exit(f"{script} compares with {', '.join(modules)}; missing: {', '.join(missing)}. "
+                 "Install them with pip install '.[bench]' (from the repository), or run "
+                 "with --no-peers for kckf-jax alone")

@@ -1,5 +1,5 @@
-"""XLA's CPU while loops as one kernel each (the setting kckf-jax makes on import) against
-XLA's default, on every path.
+"""XLA's CPU while loops as one kernel each (``kk.enable_cpu_loops()``) against XLA's
+default, on every path.
 
     python benchmarks/cpu_loops.py [--json] [--quick] [--rounds 2] [--cases a,b,...]
                                    [--bounds BYTES,...]
@@ -7,15 +7,15 @@ XLA's default, on every path.
 Each setting runs in processes of its own (XLA reads its flags once per process), the
 settings alternating (off, on, off, on, ...: ``--rounds`` of each); every case reports the
 compile and first call and the median of the calls after it, and the table the medians over
-rounds. "off" is ``KCKF_XLA_LOOPS=0`` (XLA's default: each loop iteration run kernel by
-kernel); "on" is kckf-jax's default (``kk.cpu_loops()``); ``--bounds`` adds a setting per
-bound (``KCKF_XLA_LOOPS=<bytes>``: loops touching more per iteration stay kernel by kernel),
-as for the choice of the default (``--cases lanes_1024,lanes_4096 --bounds
-1048576,16777216``). Data: simulated bench sessions (x, y, x,
-y) as ``kckf simulate`` writes them (jittered stamps, 1 % of the readings missing), the
-``voltage`` noise model of a fit's starting point, float32, except the regular hour (constant
-step, every reading, the ``angle`` noise model: the steady path, whose chunks are matrix
-products that XLA does not fold into one kernel).
+rounds. "off" is ``KCKF_XLA_LOOPS=0`` (XLA's default: on jax 0.10 each loop iteration run
+kernel by kernel); "on" is ``kk.enable_cpu_loops()``, the call the command and the
+documented API make (``kk.cpu_loops()``); ``--bounds`` adds a setting per bound
+(``KCKF_XLA_LOOPS=<bytes>``: loops touching more per iteration stay kernel by kernel), as for
+the choice of the default (``--cases lanes_1024,lanes_4096 --bounds 1048576,16777216``).
+Data: simulated bench sessions (x, y, x, y) as ``kckf simulate`` writes them (jittered
+stamps, 1 % of the readings missing), the ``voltage`` noise model of a fit's starting point,
+float32, except the regular hour (constant step, every reading, the ``angle`` noise model: the
+steady path, whose chunks are matrix products that XLA does not fold into one kernel).
 """
 
 from __future__ import annotations
@@ -41,6 +41,7 @@ def worker(cases: list[str], quick: bool) -> dict:
 
     import kckf_jax as kk
 
+    kk.enable_cpu_loops()  # "off": KCKF_XLA_LOOPS=0 makes it leave XLA's default
     sys.path.insert(0, HERE)
     import recorded as R
 

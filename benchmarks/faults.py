@@ -23,6 +23,9 @@ import sys
 import numpy as np
 
 import kckf_jax as kk
+from kckf_jax import enable_cpu_loops  # noqa: E402
+
+enable_cpu_loops()  # XLA's CPU loops as one kernel each, before any computation
 
 FAULTS = {
     "Hall disconnected (0 V) for 10 s": ["disconnect:hall1_x_l@20-30"],

@@ -36,6 +36,7 @@ from kckf_jax import (  # noqa: E402
     FitConfig,
     Sequential,
     choose_path,
+    enable_cpu_loops,  # noqa: E402
     fit,
     initial_params,
     loss_fn,
@@ -43,6 +44,8 @@ from kckf_jax import (  # noqa: E402
     read_session,
     simulate,
 )
+
+enable_cpu_loops()  # XLA's CPU loops as one kernel each, before any computation
 
 ROOT = os.path.join(os.path.dirname(__file__), "..")
 

@@ -43,9 +43,12 @@ import jax.numpy as jnp
 import numpy as np
 
 sys.path.insert(0, os.path.dirname(__file__))
-from _machine import machine  # noqa: E402
+from _machine import machine, require_peers  # noqa: E402
 
 import kckf_jax as kk  # noqa: E402
+from kckf_jax import enable_cpu_loops  # noqa: E402
+
+enable_cpu_loops()  # XLA's CPU loops as one kernel each, before any computation
 
 ROBOTS = {"bench": "x,y,x,y", "3d": "xyz,xyz,xyz,xyz"}
 MISSING_VAR = 1e12
@@ -412,6 +415,8 @@ def main():
     ap.add_argument("--cases", default="batch,trials,hour,fit",
                     help="which cases to run (comma-separated; default all)")
     args = ap.parse_args()
+    if not args.no_peers:
+        require_peers("benchmarks/recorded.py")
     doc = {"benchmark": "recorded", "machine": machine(), "date": time.strftime("%Y-%m-%d"),
            "jax": jax.__version__, "backend": jax.default_backend(),
            "robots": {n: run_robot(n, ROBOTS[n], args) for n in args.robots.split(",")}}

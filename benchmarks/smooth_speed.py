@@ -35,6 +35,9 @@ from _machine import machine  # noqa: E402
 from recorded import timed, trials  # noqa: E402  (the same data and timing)
 
 import kckf_jax as kk  # noqa: E402
+from kckf_jax import enable_cpu_loops  # noqa: E402
+
+enable_cpu_loops()  # XLA's CPU loops as one kernel each, before any computation
 
 SPEC = "x,y,x,y"
 

@@ -1,6 +1,6 @@
 """Latency and throughput of live filtering, in process and end to end over UDP.
 
-    python benchmarks/stream_latency.py [--json]
+    python benchmarks/stream_latency.py [--json] [--in-process] [--eigen-threads]
 
 * In process: ``StreamingFilter.push`` of an already parsed packet (the step: host-to-device
   copy of one reading vector, the jitted step, device-to-host copy of the estimates, the output
@@ -38,10 +38,13 @@ from kckf_jax import (  # noqa: E402
     PacketParser,
     Params,
     StreamingFilter,
+    enable_cpu_loops,  # noqa: E402
     low_latency,
     simulate,
     write_session,
 )
+
+enable_cpu_loops()  # XLA's CPU loops as one kernel each, before any computation
 
 ROOT = os.path.join(os.path.dirname(__file__), "..")
 LOADER = os.path.join(ROOT, "kckf_jax", "export_loader.py")
@@ -64,7 +67,6 @@ def stats(us) -> dict:
 
 
 def in_process(s, pk, export_path) -> dict:
-    low_latency()
     sf = StreamingFilter(Params.paper_defaults(s.robot, s.hall_models))
     sf.warmup()
     parser = PacketParser(s.robot)
@@ -221,8 +223,17 @@ def end_to_end(kind, pk, session_dir, export_path) -> dict:
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--json", action="store_true")
+    ap.add_argument("--in-process", action="store_true", help="the in-process figures only")
+    ap.add_argument("--eigen-threads", action="store_true",
+                    help="leave low_latency()'s XLA flag out (async dispatch still off): what "
+                         "the flag is worth")
     args = ap.parse_args()
-    low_latency()  # before any computation, as kckf stream does
+    if args.eigen_threads:
+        import jax
+
+        jax.config.update("jax_cpu_enable_async_dispatch", False)
+    else:
+        low_latency()  # before any computation, as kckf stream does
     s = simulate("x,y,x,y", "cyclic", seed=3, duration_s=50.0, drop_prob=0.01)
     tmp = tempfile.mkdtemp(prefix="kckf-bench-")
     session_dir = os.path.join(tmp, "s")
@@ -234,9 +245,11 @@ def main():
                  export_path, "--quiet"]) == 0
     pk = packets(s)
     doc = {"benchmark": "stream_latency", "machine": machine(), "date": time.strftime("%Y-%m-%d"),
+           "xla_flags": os.environ.get("XLA_FLAGS", ""),
            "in_process": in_process(s, pk, export_path),
-           "udp": {k: end_to_end(k, pk, session_dir, export_path)
-                   for k in ("kckf stream", "exported step", "echo (floor)")}}
+           "udp": {} if args.in_process else {
+               k: end_to_end(k, pk, session_dir, export_path)
+               for k in ("kckf stream", "exported step", "echo (floor)")}}
     if args.json:
         print(json.dumps(doc, indent=2))
         return

@@ -2,15 +2,18 @@
 
 The public API (everything else lives in private modules; docs/architecture.md maps them):
 
-* layout and parameters: ``Robot``, ``Params`` (learnable), ``ParamsFileError``,
-  ``load_params``, ``save_params``, ``params_to_dict``;
+* layout and parameters: ``Robot``, ``Params`` (learnable), ``SensorLimits`` (the physical
+  range of the readings), ``ParamsFileError``, ``load_params``, ``save_params``,
+  ``params_to_dict``;
 * the filter's kernel: ``SensorSeries``, ``FilterState``, ``Estimate``, ``METHODS``,
-  ``init_state``, ``step``, ``scan_filter``, ``pad_series``, ``full_state``, ``structure``,
-  ``paper_matrices``;
+  ``init_state``, ``step``, ``scan_filter``, ``pad_series``, ``full_state``, ``structure``
+  (and its ``Structure``), ``paper_matrices``;
 * running it: ``run_filter`` (one recording), ``filter_batch`` (padded trials),
   ``filter_sessions`` (recorded sessions), ``session_series``, ``session_params``,
-  ``choose_path`` and ``PathChoice`` (which path runs, and why);
-* offline analysis: ``smooth``, ``smooth_batch`` (the fixed-interval RTS smoother),
+  ``GapPolicy`` (what happens across a gap in the rows), ``choose_path`` and ``PathChoice``
+  (which path runs, and why), ``PathRun`` (what a path computed);
+* offline analysis: ``smooth``, ``smooth_batch`` (the fixed-interval RTS smoother; its steady
+  layout ``SteadySmoother``), ``hall_nll`` (the Hall readings' negative log-likelihood),
   ``consistency_figures`` (NIS and NEES against a consistent filter's interval);
 * the paths (how the same estimates are computed): ``AbstractPath``, ``Sequential``,
   ``Steady``, ``Lanes``, ``Segments``, ``Parallel``, ``Auto``;
@@ -23,28 +26,32 @@ The public API (everything else lives in private modules; docs/architecture.md m
 * set-up mistakes named before filtering (swapped Hall columns, a gyro of the wrong sign, a
   Hall curve that cannot be the sensor's): ``setup_check``, ``SetupFinding``;
 * evaluation and fitting: ``rmse_table``, ``fused_hall_error``, ``fit``, ``FitConfig``,
-  ``FitResult``, ``FitInterrupted``, ``initial_params``, ``loss_fn``, ``make_batch``,
-  ``shard_batch``;
+  ``FitResult``, ``FitInterrupted``, ``initial_params``, ``loss_fn``, ``make_batch`` (and its
+  ``Batch``), ``shard_batch``;
 * live filtering and deployment: ``StreamingFilter``, ``PacketParser``, ``Packet``,
   ``STATUSES``, ``low_latency``, ``export_step``;
 * faulty readings (what the step does not use, and why): ``FAULT_KINDS``,
   ``fault_stretches`` (``Estimate.faults`` by column, kind and time);
 * analysis: ``observability_ranks``;
-* the one process-wide setting it makes, on import (XLA's CPU while loops compiled as one
-  kernel each): ``cpu_loops`` says what it did.
+* the one process-wide setting it offers, made only when asked (XLA's CPU while loops
+  compiled as one kernel each; importing kckf_jax changes nothing in the process):
+  ``enable_cpu_loops``, and ``cpu_loops`` (what it did, measured).
 
 The other papers' systems are in ``kckf_jax.filters``.
 """
 
 from ._cpu_loops import cpu_loops as cpu_loops
+from ._cpu_loops import enable_cpu_loops as enable_cpu_loops
 from ._demo import sample_data_dir as sample_data_dir
 from ._export import export_step as export_step
+from ._fit import Batch as Batch
 from ._fit import FitConfig as FitConfig
 from ._fit import fit as fit
 from ._fit import initial_params as initial_params
 from ._fit import loss_fn as loss_fn
 from ._fit import make_batch as make_batch
 from ._fit import shard_batch as shard_batch
+from ._gaps import GapPolicy as GapPolicy
 from ._hall import hall_angle as hall_angle
 from ._hall import hall_slope as hall_slope
 from ._hall import hall_voltage as hall_voltage
@@ -56,8 +63,11 @@ from ._kernel import init_state as init_state
 from ._kernel import pad_series as pad_series
 from ._kernel import scan_filter as scan_filter
 from ._kernel import step as step
+from ._likelihood import hall_nll as hall_nll
+from ._limits import SensorLimits as SensorLimits
 from ._metrics import fused_hall_error as fused_hall_error
 from ._metrics import rmse_table as rmse_table
+from ._model import Structure as Structure
 from ._model import full_state as full_state
 from ._model import paper_matrices as paper_matrices
 from ._model import structure as structure
@@ -72,9 +82,11 @@ from ._paths import Auto as Auto
 from ._paths import Lanes as Lanes
 from ._paths import Parallel as Parallel
 from ._paths import PathChoice as PathChoice
+from ._paths import PathRun as PathRun
 from ._paths import Segments as Segments
 from ._paths import Sequential as Sequential
 from ._paths import Steady as Steady
+from ._paths._steady_smooth import SteadySmoother as SteadySmoother
 from ._report import consistency_figures as consistency_figures
 from ._robot import Robot as Robot
 from ._run import choose_path as choose_path

@@ -1,73 +1,76 @@
-"""XLA's CPU while loops compiled as one kernel each: the one process-wide setting kckf-jax
-makes, when it is imported.
+"""XLA's CPU while loops compiled as one kernel each: a process-wide setting kckf-jax makes
+only when asked (``enable_cpu_loops``), never on import.
 
-Every filter here is a ``lax.scan``, an XLA while loop. Since jax 0.4.32 XLA's CPU runtime runs
-each iteration of a loop as a sequence of "thunks", one per fused kernel, through a dataflow
-executor: a filter step on lanes is 50 to 60 kernels of a few hundred numbers each, and
-launching them, not their arithmetic, was most of the step's time. XLA has a pass that
-compiles a whole while loop into one function, as the runtime before 0.4.32 did for every
-loop (``SmallWhileLoopHoistingPass``): it takes a loop with no dot, convolution, scatter,
-custom call or collective whose one iteration touches fewer than
-``xla_cpu_small_while_loop_byte_threshold`` bytes, 1,024 by default, which none of ours does.
-kckf-jax raises that bound to ``LOOP_BYTES`` (every loop the pass can take) in ``XLA_FLAGS``
-when it is imported, before JAX's backend has started, since XLA reads its flags once, then.
-Loops with matrix products (the steady path's chunks) are not taken and run as before.
+Every filter here is a ``lax.scan``, an XLA while loop. From jax 0.4.32 to 0.10, XLA's CPU
+runtime ran each iteration of a loop as a sequence of "thunks", one per fused kernel, through a
+dataflow executor: a filter step on lanes is 50 to 60 kernels of a few hundred numbers each,
+and launching them, not their arithmetic, was most of the step's time. XLA has a pass that
+compiles a whole while loop into one function (``SmallWhileLoopHoistingPass``): it takes a loop
+with no dot, convolution, scatter, custom call or collective whose one iteration touches fewer
+than ``xla_cpu_small_while_loop_byte_threshold`` bytes, 1,024 by default in jax 0.10, which
+none of ours does. ``enable_cpu_loops`` raises that bound to ``LOOP_BYTES`` (every loop the pass
+can take) in ``XLA_FLAGS``; XLA reads its flags once, when JAX's backend starts, so the call
+must come before the process's first JAX computation. No per-program mechanism carries it: in
+jax 0.10.2 and 0.12.0.1 ``jax.jit(..., compiler_options=...)`` refuses the option (it is an
+entry of the map ``xla_backend_extra_options``).
 
-Measured (AMD EPYC, 2 cores, jax 0.10.2, float32, recorded-like bench rows; both settings
-alternating in processes of their own, medians; ``python benchmarks/cpu_loops.py``, figures
-in benchmarks/README.md): one fitting step on 64 x 10,000 rows 1.15 -> 0.52 s, the lanes
-filter of 1,024 trials x 2,000 rows 2.06 -> 0.84 s, the smoother on one hour 4.2 -> 1.1 s, the
-sequential filter on one hour 0.93 -> 0.32 s; the vmapped sequential step of 64 trials, whose
-larger kernels no longer share two threads, 1.08x slower (``Auto`` gives 64 trials to the
-lanes path).
+Measured (AMD EPYC, 2 cores, float32, recorded-like bench rows; ``python
+benchmarks/cpu_loops.py``, figures in benchmarks/README.md), jax 0.10.2: one fitting step on
+64 x 10,000 rows 1.15 -> 0.52 s, the lanes filter of 1,024 trials x 2,000 rows 2.06 -> 0.84 s,
+the smoother on one hour 4.2 -> 1.1 s, the sequential filter on one hour 0.93 -> 0.32 s. jax
+0.12's XLA compiles these loops as one kernel without being asked (``cpu_loops()`` measures
+it), and the call changes nothing there.
 
-The setting is the process's: any other JAX program in it compiles its loops this way too, and
-subprocesses inherit ``XLA_FLAGS``. ``KCKF_XLA_LOOPS=0`` in the environment leaves XLA's
-default alone; ``KCKF_XLA_LOOPS=<bytes>`` sets that bound instead; an ``XLA_FLAGS`` that
-already names the option is kept as it is. ``cpu_loops()`` says which of these happened.
+Who calls it: the ``kckf`` command, for itself; the README's API example, the notebooks,
+``training/`` and ``benchmarks/`` show it. A library user who does not call it gets the same
+results, at XLA's default speed. ``KCKF_XLA_LOOPS=0`` makes the call leave XLA's default
+alone, ``KCKF_XLA_LOOPS=<bytes>`` sets that bound instead, and an ``XLA_FLAGS`` that already
+names the option is kept as it is.
 """
 
 from __future__ import annotations
 
+import functools
 import os
 import re
-import warnings
-from collections.abc import Callable, MutableMapping
+from collections.abc import MutableMapping
 from typing import NamedTuple
-
-import jax
-from jax._src import xla_bridge  # JAX's record of started backends: no public API tells it
 
 #: XLA's option: loops whose one iteration touches fewer bytes are compiled as one kernel.
 OPTION = "xla_cpu_small_while_loop_byte_threshold"
-#: The bound kckf-jax sets: 1 TiB, every loop the pass can take. Smaller bounds leave the larger
-#: batches' loops to the thunk runtime, which was slower there at every size measured
-#: (``python benchmarks/cpu_loops.py --cases lanes_1024,lanes_4096 --bounds ...``,
+#: The bound ``enable_cpu_loops`` sets: 1 TiB, every loop the pass can take. Smaller bounds
+#: leave the larger batches' loops to the thunk runtime, which was slower there at every size
+#: measured (``python benchmarks/cpu_loops.py --cases lanes_1024,lanes_4096 --bounds ...``,
 #: benchmarks/README.md).
 LOOP_BYTES = 1 << 40
 #: The environment variable that overrides it: ``0`` for XLA's default, or a bound in bytes.
 ENV = "KCKF_XLA_LOOPS"
-#: XLA's own default bound (``cpu_options.cc``), for the report.
+#: XLA's own default bound in jax 0.10 (``cpu_options.cc``), for the report.
 XLA_DEFAULT_BYTES = 1024
 
 _EXTRA = "--xla_backend_extra_options="
 
 
 class CpuLoops(NamedTuple):
-    """How XLA compiles while loops on the CPU in this process (``cpu_loops()``).
+    """How XLA compiles while loops on the CPU in this process.
 
     Attributes:
-        state: ``"on"`` (kckf-jax set the bound when it was imported), ``"preset"``
+        state: what ``enable_cpu_loops`` did: ``"on"`` (it set the bound), ``"preset"``
             (``XLA_FLAGS`` already named the option; kept), ``"off"`` (``KCKF_XLA_LOOPS=0``:
-            XLA's default), ``"late"`` (JAX's backend had started before kckf-jax was
-            imported, so XLA had read its flags already: XLA's default, unless they named it).
+            XLA's default), ``"default"`` (not called: XLA's default); and from
+            ``cpu_loops()`` also ``"late"``: it set the bound after JAX's backend had started,
+            so XLA never read it.
         loop_bytes: the bound in effect, in bytes per loop iteration.
         detail: the same in words, with what to do about it where something can be done.
+        one_kernel: whether this process's XLA compiles a filter-sized loop as one kernel
+            (measured by ``cpu_loops()``: a probe program compiled once; ``None`` where not
+            measured).
     """
 
     state: str
     loop_bytes: int
     detail: str
+    one_kernel: bool | None = None
 
 
 def with_option(flags: str, loop_bytes: int) -> str:
@@ -89,11 +92,28 @@ def preset_bytes(flags: str) -> int | None:
     return int(found[-1]) if found else None
 
 
-def configure(environ: MutableMapping[str, str] = os.environ,
-              started: Callable[[], bool] | None = None) -> CpuLoops:
-    """Set ``OPTION`` in ``environ["XLA_FLAGS"]`` unless ``KCKF_XLA_LOOPS=0``, the flags name
-    it already, or JAX's backend has started (``started()``; then XLA has read its flags and
-    the setting could not take effect: a warning says so when the backend is a CPU)."""
+_DEFAULT = CpuLoops("default", XLA_DEFAULT_BYTES,
+                    "enable_cpu_loops() was not called: XLA's default loops (on jax 0.10, each "
+                    "loop iteration kernel by kernel: the filters 2-4x slower on a CPU)")
+_STATE = _DEFAULT
+
+
+def enable_cpu_loops(environ: MutableMapping[str, str] | None = None) -> CpuLoops:
+    """Compile XLA's CPU while loops (every filter's scan) as one kernel each, in this process
+    and the subprocesses it starts: sets ``OPTION`` in ``environ["XLA_FLAGS"]`` (default
+    ``os.environ``). Call it before the process's first JAX computation (XLA reads its flags
+    once, then); ``cpu_loops()`` tells whether it took effect. ``KCKF_XLA_LOOPS=0`` in
+    ``environ`` leaves XLA's default alone, ``KCKF_XLA_LOOPS=<bytes>`` sets that bound, and an
+    ``XLA_FLAGS`` that names the option already is kept. Returns what it did.
+
+    Example:
+        >>> import kckf_jax as kk
+        >>> kk.enable_cpu_loops({"XLA_FLAGS": ""}).state
+        'on'
+    """
+    global _STATE
+    mine = environ is None
+    environ = os.environ if environ is None else environ
     flags = environ.get("XLA_FLAGS", "")
     have = preset_bytes(flags)
     asked = environ.get(ENV, "").strip()
@@ -101,44 +121,54 @@ def configure(environ: MutableMapping[str, str] = os.environ,
         raise ValueError(f"{ENV}={asked!r}: expected 0 (XLA's default) or a bound in bytes per "
                          f"loop iteration (kckf-jax's default is {LOOP_BYTES})")
     if asked == "0":
-        return CpuLoops("off", have or XLA_DEFAULT_BYTES,
-                        f"{ENV}=0: XLA's default, each loop iteration run kernel by kernel")
-    if have is not None:
-        return CpuLoops("preset", have, f"XLA_FLAGS sets {OPTION}={have}; kept")
-    if (started or _backend_started)():
-        detail = (f"JAX's backend started before kckf_jax was imported, so XLA had read its "
-                  f"flags: each loop iteration runs kernel by kernel, and the filters run 2-4x "
-                  f"slower on a CPU. Import kckf_jax before running any JAX computation, or "
-                  f"set XLA_FLAGS='{with_option('', LOOP_BYTES)}' before starting Python "
-                  f"({ENV}=0 silences this)")
-        if _cpu_backend():
-            warnings.warn(detail, stacklevel=2)
-        return CpuLoops("late", XLA_DEFAULT_BYTES, detail)
-    loop_bytes = int(asked) if asked else LOOP_BYTES
-    environ["XLA_FLAGS"] = with_option(flags, loop_bytes)
-    return CpuLoops("on", loop_bytes, f"kckf_jax set {OPTION}={loop_bytes} in XLA_FLAGS: "
-                                      "XLA compiles each while loop as one kernel")
+        state = CpuLoops("off", have or XLA_DEFAULT_BYTES,
+                         f"{ENV}=0: XLA's default loops")
+    elif have is not None:
+        state = CpuLoops("preset", have, f"XLA_FLAGS sets {OPTION}={have}; kept")
+    else:
+        loop_bytes = int(asked) if asked else LOOP_BYTES
+        environ["XLA_FLAGS"] = with_option(flags, loop_bytes)
+        state = CpuLoops("on", loop_bytes, f"{OPTION}={loop_bytes} set in XLA_FLAGS: XLA "
+                                           "compiles each while loop as one kernel")
+    if mine:
+        _STATE = state
+        _probe.cache_clear()
+    return state
 
 
-def _backend_started() -> bool:
-    return xla_bridge.backends_are_initialized()
+@functools.lru_cache(maxsize=1)
+def _probe() -> bool:
+    """Whether XLA compiles a loop touching 2 KiB per iteration (a filter step on lanes is
+    larger) as one kernel here: the compiled program's loop is a call XLA marks as hoisted."""
+    import jax
+    import jax.numpy as jnp
 
+    def body(c, r):
+        return jnp.tanh(c * 0.5 + r), c
 
-def _cpu_backend() -> bool:
-    return jax.default_backend() == "cpu"
-
-
-_STATE = configure()
+    cpu = jax.devices("cpu")[0]
+    x = jax.device_put(jnp.zeros((4, 64, 8), jnp.float32), cpu)
+    text = jax.jit(lambda x: jax.lax.scan(body, x[0], x)[1]).lower(x).compile().as_text()
+    return 'xla_cpu_small_call="true"' in text
 
 
 def cpu_loops() -> CpuLoops:
-    """How XLA compiles while loops (every filter's scan) on the CPU in this process: set by
-    kckf-jax when it was imported (``"on"``), by ``XLA_FLAGS`` (``"preset"``), left at XLA's
-    default (``"off"``, ``"late"``). See the module docstring and docs/performance.md.
+    """How XLA compiles while loops (every filter's scan) on the CPU in this process: what
+    ``enable_cpu_loops`` did, and whether loops are compiled as one kernel (``one_kernel``,
+    measured once: it starts JAX's backend). See the module docstring and
+    docs/performance.md.
 
     Example:
         >>> import kckf_jax as kk
-        >>> kk.cpu_loops().state in ("on", "preset", "off", "late")
+        >>> kk.cpu_loops().state in ("on", "preset", "off", "default", "late")
         True
     """
-    return _STATE
+    one = _probe()
+    state = _STATE
+    if state.state == "on" and not one:
+        return CpuLoops("late", XLA_DEFAULT_BYTES,
+                        "enable_cpu_loops() ran after JAX's backend had started, so XLA never "
+                        "read the setting: call it before the process's first JAX computation, "
+                        f"or set XLA_FLAGS='{with_option('', LOOP_BYTES)}' before starting "
+                        "Python", one)
+    return state._replace(one_kernel=one)

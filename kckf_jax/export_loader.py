@@ -5,6 +5,7 @@
 
 As a library::
 
+    low_latency()   # optional, once, before the first computation: one packet at a time
     step = ExportedStep("step.jaxexport")
     rec = step.handle(b'{"t": 0.01, "gyro1_x": 0.01, "hall1_x_l": 1.31}')  # a packet, as bytes
     est = step.push(t, {"gyro1_x": 0.01, "hall1_x_l": 1.31})   # dict of readings; None = missing
@@ -25,16 +26,23 @@ import math
 import os
 import sys
 
-# One thread for XLA's tiny kernels (no thread hand-offs per packet), and synchronous dispatch;
-# added to flags set before (importing kckf_jax sets one, its CPU loops).
-_FLAGS = os.environ.get("XLA_FLAGS", "")
-if "intra_op_parallelism_threads" not in _FLAGS:
-    os.environ["XLA_FLAGS"] = (_FLAGS + " --xla_cpu_multi_thread_eigen=false "
-                               "intra_op_parallelism_threads=1").strip()
-import jax  # noqa: E402
+import jax
+import numpy as np
 
-jax.config.update("jax_cpu_enable_async_dispatch", False)
-import numpy as np  # noqa: E402
+#: XLA's kernels on the calling thread (no thread hand-offs per packet); a flag of jax
+#: 0.10-0.12's XLA (an unknown flag aborts XLA at its start).
+LOW_LATENCY_XLA_FLAGS = "--xla_cpu_multi_thread_eigen=false"
+
+
+def low_latency() -> None:
+    """Settings for one packet at a time, for the process (importing this file changes
+    nothing; ``main`` calls this): synchronous dispatch, and if no JAX computation has run yet,
+    XLA's kernels on the calling thread (``LOW_LATENCY_XLA_FLAGS``)."""
+    jax.config.update("jax_cpu_enable_async_dispatch", False)
+    flags = os.environ.get("XLA_FLAGS", "")
+    if LOW_LATENCY_XLA_FLAGS not in flags:
+        os.environ["XLA_FLAGS"] = (flags + " " + LOW_LATENCY_XLA_FLAGS).strip()
+
 
 MAGIC = b"KCKF-JAXEXPORT/1\n"
 MAX_PACKET_BYTES = 8192
@@ -205,6 +213,7 @@ def main(argv=None) -> int:
     ap.add_argument("--gap", type=float, default=None, help="gap threshold, s (from the export)")
     ap.add_argument("--on-gap", choices=("predict", "restart"), default=None)
     args = ap.parse_args(argv)
+    low_latency()  # before the first computation
     step = ExportedStep(args.path, gap_s=args.gap, on_gap=args.on_gap)
     if args.udp is None:
         for line in sys.stdin:

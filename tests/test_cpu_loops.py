@@ -1,10 +1,12 @@
-"""The one process-wide setting kckf-jax makes on import (``_cpu_loops``): XLA's CPU while loops
-compiled as one kernel each. Its parsing of ``XLA_FLAGS``, every state it reports, and that the
-filters' loops (forward and reverse) are ones XLA takes under it."""
+"""The one process-wide setting kckf-jax offers, made only when asked (``enable_cpu_loops``):
+XLA's CPU while loops compiled as one kernel each. Its parsing of ``XLA_FLAGS``, every state
+it reports, that importing the package changes nothing in the process, and that the filters'
+loops (forward and reverse) are ones XLA takes under it."""
 
 from __future__ import annotations
 
 import os
+import pathlib
 import re
 import subprocess
 import sys
@@ -36,60 +38,78 @@ def test_with_option_adds_to_the_flags_and_to_existing_extra_options():
     assert cl.preset_bytes("--xla_backend_extra_options=a=1") is None
 
 
-def test_configure_reports_every_state_and_changes_only_what_it_says():
+def test_enable_reports_every_state_and_changes_only_what_it_says():
     env = {"XLA_FLAGS": "--xla_dump_to=/tmp/d"}
-    state = cl.configure(env, started=lambda: False)
+    state = cl.enable_cpu_loops(env)
     assert state.state == "on" and state.loop_bytes == cl.LOOP_BYTES
     assert cl.preset_bytes(env["XLA_FLAGS"]) == cl.LOOP_BYTES
     assert env["XLA_FLAGS"].startswith("--xla_dump_to=/tmp/d ")
 
     again = dict(env)  # a subprocess inherits the flags: kept as they are
-    assert cl.configure(again, started=lambda: False).state == "preset"
+    assert cl.enable_cpu_loops(again).state == "preset"
     assert again == env
 
     env = {"KCKF_XLA_LOOPS": "4096"}
-    assert cl.configure(env, started=lambda: False)[:2] == ("on", 4096)
+    assert cl.enable_cpu_loops(env)[:2] == ("on", 4096)
     assert cl.preset_bytes(env["XLA_FLAGS"]) == 4096
 
     env = {"KCKF_XLA_LOOPS": "0", "XLA_FLAGS": "--x=1"}
-    off = cl.configure(env, started=lambda: False)
+    off = cl.enable_cpu_loops(env)
     assert off.state == "off" and off.loop_bytes == cl.XLA_DEFAULT_BYTES
     assert env == {"KCKF_XLA_LOOPS": "0", "XLA_FLAGS": "--x=1"}
 
     with pytest.raises(ValueError, match="KCKF_XLA_LOOPS='fast'.*0 .*bytes"):
-        cl.configure({"KCKF_XLA_LOOPS": "fast"}, started=lambda: False)
+        cl.enable_cpu_loops({"KCKF_XLA_LOOPS": "fast"})
 
 
-def test_a_late_import_changes_nothing_and_says_how_to_fix_it():
-    env = {}
-    with pytest.warns(UserWarning, match="before kckf_jax was imported.*Import kckf_jax before"):
-        late = cl.configure(env, started=lambda: True)
-    assert late.state == "late" and late.loop_bytes == cl.XLA_DEFAULT_BYTES
-    assert env == {}  # XLA has read its flags: nothing to change
-    assert "XLA_FLAGS='--xla_backend_extra_options=" in late.detail
-    # Opted out, or set by the user: no warning.
-    assert cl.configure({"KCKF_XLA_LOOPS": "0"}, started=lambda: True).state == "off"
-    flags = {"XLA_FLAGS": f"--xla_backend_extra_options={OPTION}=9"}
-    assert cl.configure(flags, started=lambda: True).state == "preset"
+_CLEAN_ENV = {k: v for k, v in os.environ.items() if k not in ("KCKF_XLA_LOOPS", "XLA_FLAGS")}
 
 
-def test_importing_the_package_starts_no_backend():
-    """The setting takes effect only if no module of the package starts JAX's backend when it
-    is imported (XLA reads its flags then)."""
-    code = ("import pkgutil, importlib, kckf_jax\n"
-            "from jax._src import xla_bridge\n"
-            "for m in pkgutil.walk_packages(kckf_jax.__path__, 'kckf_jax.'):\n"
-            "    if not m.name.endswith(('export_loader', '__main__')):\n"
-            "        importlib.import_module(m.name)\n"
-            "assert not xla_bridge.backends_are_initialized()\n"
-            "print(kckf_jax.cpu_loops().state)\n")
-    env = {k: v for k, v in os.environ.items() if k != "KCKF_XLA_LOOPS"}
-    env["XLA_FLAGS"] = os.environ.get("KCKF_TEST_XLA_FLAGS", "")
-    got = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
+def _python(code: str) -> str:
+    got = subprocess.run([sys.executable, "-c", code], env=_CLEAN_ENV, capture_output=True,
                          text=True, timeout=120)
-    assert got.returncode == 0, got.stderr
-    expect = "preset" if cl.preset_bytes(env["XLA_FLAGS"]) is not None else "on"
-    assert got.stdout.strip() == expect
+    assert got.returncode == 0, got.stderr[-3000:]
+    return got.stdout.strip()
+
+
+def test_importing_the_package_changes_nothing_in_the_process():
+    """Every module of the package imported: the environment (``XLA_FLAGS`` included) and
+    JAX's configuration are as they were, and JAX's backend has not started (``enable_cpu_loops``
+    could still take effect)."""
+    code = ("import os, jax, pkgutil, importlib\n"
+            "env, conf = dict(os.environ), dict(jax.config.values)\n"
+            "import kckf_jax\n"
+            "for m in pkgutil.walk_packages(kckf_jax.__path__, 'kckf_jax.'):\n"
+            "    if not m.name.endswith('__main__'):\n"
+            "        importlib.import_module(m.name)\n"
+            "assert dict(os.environ) == env, set(os.environ.items()) ^ set(env.items())\n"
+            "assert dict(jax.config.values) == conf\n"
+            "print(kckf_jax.enable_cpu_loops().state)\n"
+            "print(kckf_jax.cpu_loops().one_kernel)\n")
+    assert _python(code).splitlines() == ["on", "True"]
+
+
+def test_no_private_jax_module_is_used():
+    root = pathlib.Path(kk.__file__).parent
+    users = [str(f.relative_to(root)) for f in root.rglob("*.py") if "jax._src" in f.read_text()]
+    assert users == []
+
+
+def test_a_late_call_says_so_and_how_to_fix_it():
+    """Called after the first computation, the setting cannot reach XLA: where this XLA does
+    not compile loops as one kernel by itself (jax 0.10), ``cpu_loops`` says "late" and what to
+    do; where it does (jax 0.12), the loops are one kernel anyway."""
+    code = ("import jax.numpy as jnp, kckf_jax as kk\n"
+            "jnp.zeros(3).block_until_ready()\n"
+            "print(kk.enable_cpu_loops().state)\n"
+            "r = kk.cpu_loops()\n"
+            "print(r.state, r.one_kernel)\n"
+            "print(r.detail)\n")
+    enabled, report, detail = _python(code).splitlines()
+    assert enabled == "on"
+    assert report in ("late False", "on True")
+    if report.startswith("late"):
+        assert "before the process's first JAX computation" in detail
 
 
 def _loops(compiled_text: str) -> tuple[int, int]:
@@ -101,11 +121,11 @@ def _loops(compiled_text: str) -> tuple[int, int]:
 
 @pytest.mark.parametrize("path", ["lanes", "sequential"])
 def test_the_filters_loops_forward_and_reverse_are_each_one_kernel(path):
-    """Under the setting (this process imported kckf_jax with it), every while loop of the
+    """Under the setting (the suite's conftest makes the call), every while loop of the
     fitting gradient is hoisted: a dot, scatter or custom call in a step would keep its loop
     on the thunk runtime, 2-4x slower (benchmarks/README.md, cpu_loops.py)."""
-    if kk.cpu_loops().loop_bytes < cl.LOOP_BYTES:
-        pytest.skip(f"the setting is not in effect here: {kk.cpu_loops().detail}")
+    if not kk.cpu_loops().one_kernel:
+        pytest.skip(f"loops are not one kernel here: {kk.cpu_loops().detail}")
     robot = kk.Robot.from_spec("x,y,x,y")
     trials = [kk.simulate(robot, "human", seed=s, duration_s=0.6, drop_prob=0.05)
               for s in range(2)]

@@ -22,8 +22,16 @@ jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from kckf_jax import Params, run_filter, session_series, simulate  # noqa: E402
+from kckf_jax import (  # noqa: E402
+    Params,
+    enable_cpu_loops,  # noqa: E402
+    run_filter,
+    session_series,
+    simulate,
+)
 from kckf_jax.plots import plot_drift  # noqa: E402
+
+enable_cpu_loops()  # XLA's CPU loops as one kernel each, before any computation
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 

@@ -15,7 +15,17 @@ import argparse
 import json
 import os
 
-from kckf_jax import FitConfig, Robot, filter_sessions, fit, rmse_table, simulate
+from kckf_jax import (
+    FitConfig,
+    Robot,
+    enable_cpu_loops,  # noqa: E402
+    filter_sessions,
+    fit,
+    rmse_table,
+    simulate,
+)
+
+enable_cpu_loops()  # XLA's CPU loops as one kernel each, before any computation
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 

@@ -12,7 +12,13 @@ import argparse
 import os
 import shutil
 
-from kckf_jax import simulate, write_session
+from kckf_jax import (
+    enable_cpu_loops,  # noqa: E402
+    simulate,
+    write_session,
+)
+
+enable_cpu_loops()  # XLA's CPU loops as one kernel each, before any computation
 
 # One exoshell per data set (device_seed): train and test sessions are trials of the same
 # robot, so a fitted Hall calibration carries over to the test sessions.

@@ -29,6 +29,7 @@ from kckf_jax import (
     Robot,
     SensorSeries,
     consistency_figures,
+    enable_cpu_loops,  # noqa: E402
     filter_sessions,
     fit,
     pad_series,
@@ -37,6 +38,8 @@ from kckf_jax import (
     simulate,
     smooth_batch,
 )
+
+enable_cpu_loops()  # XLA's CPU loops as one kernel each, before any computation
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 

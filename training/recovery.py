@@ -26,6 +26,7 @@ from kckf_jax import (
     Params,
     Robot,
     consistency_figures,
+    enable_cpu_loops,  # noqa: E402
     filter_sessions,
     fit,
     fused_hall_error,
@@ -33,6 +34,8 @@ from kckf_jax import (
     rmse_table,
     simulate,
 )
+
+enable_cpu_loops()  # XLA's CPU loops as one kernel each, before any computation
 
 DEG = np.pi / 180.0
 

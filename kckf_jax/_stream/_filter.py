@@ -398,7 +398,9 @@ def _compiled_step(params: Params, method: str):
         flatten, unflatten
 
 
-LOW_LATENCY_XLA_FLAGS = "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"
+#: XLA's kernels on the calling thread (a flag of jax 0.10-0.12's XLA: an unknown flag aborts
+#: XLA when its backend starts).
+LOW_LATENCY_XLA_FLAGS = "--xla_cpu_multi_thread_eigen=false"
 
 
 def low_latency() -> None:
@@ -406,13 +408,13 @@ def low_latency() -> None:
 
     Turns off JAX's asynchronous CPU dispatch (a call per packet then costs about a third,
     ``../shared/notes/jax-cpu-hazards.md`` item 2) and, if no computation has run yet, keeps
-    XLA's kernels on the calling thread (``LOW_LATENCY_XLA_FLAGS``; they are tiny, and a
+    XLA's Eigen kernels on the calling thread (``LOW_LATENCY_XLA_FLAGS``; they are tiny, and a
     hand-off to a thread pool costs more than it saves)."""
     import os
 
     jax.config.update("jax_cpu_enable_async_dispatch", False)
     flags = os.environ.get("XLA_FLAGS", "")
-    if "intra_op_parallelism_threads" not in flags:
+    if LOW_LATENCY_XLA_FLAGS not in flags:
         os.environ["XLA_FLAGS"] = (flags + " " + LOW_LATENCY_XLA_FLAGS).strip()
 
 
