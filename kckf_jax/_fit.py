@@ -28,7 +28,7 @@ from ._gaps import GapPolicy
 from ._kernel import SensorSeries, init_state, pad_series
 from ._likelihood import hall_nll
 from ._params import _LEAVES, Params, with_floors
-from ._paths import AbstractPath, Auto, Lanes, Sequential, Steady, as_path, is_traced
+from ._paths import AbstractPath, Auto, Sequential, as_path, regular_step
 from ._run import choose_path, screened
 from ._session import Session, split_at_gaps
 from ._train import (
@@ -113,26 +113,6 @@ def _origins(sessions: Sequence[Session], gaps: GapPolicy) -> list[Session]:
 REMAT_ABOVE_STEPS = 300_000
 
 
-#: The lanes path for a gradient that is not chunked: from one trial on. Its hand-written
-#: reverse pass (``_paths/_lanes_adjoint``) makes the lanes gradient faster than the sequential
-#: path's at every batch measured, where a filter run once is done sooner on the sequential
-#: path below ``Lanes.min_trials`` (the lanes program compiles longer; docs/performance.md).
-#: Recorded-like bench rows, float32, AMD EPYC, 2026-12-04, one RMSE value and gradient, each
-#: loop one kernel (``_cpu_loops``): 1 x 5,000 rows 12 ms against 65 ms, 8 x 5,000 63 against
-#: 151 ms (with every kernel launched apart: 1 x 4,000 36 against 67 ms, 3 x 4,000 53 against
-#: 84 ms). It keeps every row's state and gains (about 1.1 kB per trial-step with the rows'
-#: inputs), so a gradient the sequential path would chunk for memory (``auto_chunk``) keeps
-#: ``Auto``'s own choice.
-GRADIENT_LANES = Lanes(min_trials=1)
-
-
-def lanes_at_any_count(gradient: bool, remat_chunk: int | None) -> bool:
-    """Whether a training loss takes the lanes path from one trial on (``GRADIENT_LANES``,
-    for the RMSE's filter and the likelihood's innovations alike): a gradient (the validation
-    loss is not one) that is not chunked for memory."""
-    return gradient and remat_chunk is None
-
-
 def auto_chunk(T: int, trials: int = 1) -> int | None:
     """Remat chunk for a gradient through ``trials`` scans of ``T`` steps: about sqrt(T), or
     none when everything fits comfortably in memory (no recomputation, faster to compile)."""
@@ -153,8 +133,7 @@ def per_angle_rmse(params: Params, batch: Batch, method: str = "kckf",
     NaN-free by construction: missing truth is masked before it is subtracted, and the square
     root is guarded, so neither the loss nor its gradient is NaN when truth is missing.
     """
-    path = (Auto(segments=None, sequential=Sequential(remat_chunk)) if path is None
-            else as_path(path))
+    path = Auto().for_loss(remat_chunk, gradient=False) if path is None else as_path(path)
     n_trials = batch.truth.shape[0]
     state = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (n_trials,) + x.shape),
                                    init_state(params, method))
@@ -189,10 +168,8 @@ class RmseLoss(AbstractLoss):
         return loss_fn(params, batch, self.method, path=self.path)
 
     def refresh(self, params) -> RmseLoss:
-        if isinstance(self.path, Steady) and self.step_s is not None and not is_traced(params):
-            P0 = init_state(params, self.method).P
-            if self.path.converges(params, self.method, self.step_s, P0) is not None:
-                return replace(self, path=self.fallback, step_s=None)
+        if self.path.recheck(params, self.method, self.step_s) is not None:
+            return replace(self, path=self.fallback, step_s=None)
         return self
 
 
@@ -206,12 +183,12 @@ class NllLoss(AbstractLoss):
     reading; ``_likelihood.hall_nll``): needs no motion capture."""
 
     method: str = eqx.field(static=True)
-    lanes: bool | None = eqx.field(static=True, default=None)  # hall_nll's
+    path: AbstractPath = eqx.field(static=True, default=Auto())  # lays out the innovations
     unit: ClassVar[str] = "nats"
     scale: ClassVar[float] = 1.0
 
     def __call__(self, params, batch):
-        return hall_nll(params, batch.series, self.method, self.lanes)
+        return hall_nll(params, batch.series, self.method, path=self.path)
 
 
 class RmseNllLoss(AbstractLoss):
@@ -240,8 +217,7 @@ def make_loss(kind: str, params: Params, batch: Batch, method: str,
               gradient: bool = True) -> AbstractLoss:
     """The training loss ``kind`` (``LOSSES``) on ``batch``; ``gradient``: it will be
     differentiated (the validation loss is not), which decides its path (``rmse_loss``)."""
-    # Else hall_nll's own choice of the innovations' scan.
-    nll = NllLoss(method, True if lanes_at_any_count(gradient, remat_chunk) else None)
+    nll = NllLoss(method, Auto().for_loss(remat_chunk, gradient))
     if kind == "nll":
         return nll
     rmse = rmse_loss(params, batch, method, remat_chunk, gradient)
@@ -250,17 +226,11 @@ def make_loss(kind: str, params: Params, batch: Batch, method: str,
 
 def rmse_loss(params: Params, batch: Batch, method: str, remat_chunk: int | None,
               gradient: bool = True) -> RmseLoss:
-    """The training loss on ``batch``, its path chosen on the concrete data and ``params``:
-    ``Auto``'s, with the lanes path from one trial on for a gradient that is not chunked
-    (``lanes_at_any_count``)."""
-    fallback = Sequential(remat_chunk)
-    # Not the segments path: its warm-ups cut each segment's dependence on the rows before
-    # them, which the values' check vouches for but a gradient would not see.
-    lanes = GRADIENT_LANES if lanes_at_any_count(gradient, remat_chunk) else Lanes()
-    path = choose_path(params, batch.series, method,
-                       Auto(lanes=lanes, segments=None, sequential=fallback)).path
-    step_s = float(np.asarray(batch.series.dt)[0, 1]) if isinstance(path, Steady) else None
-    return RmseLoss(method, path, step_s, fallback)
+    """The training loss on ``batch``, its path chosen on the concrete data and ``params``
+    by the policy for a fitting loss (``Auto.for_loss``)."""
+    policy = Auto().for_loss(remat_chunk, gradient)
+    path = choose_path(params, batch.series, method, policy).path
+    return RmseLoss(method, path, regular_step(params, batch.series)[0], policy.sequential)
 
 
 # ----------------------------------------------------------------------------- sharding

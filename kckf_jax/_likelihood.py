@@ -34,7 +34,8 @@ from ._hall import hall_slope
 from ._kernel import SensorSeries, hall_measurements, init_states, plausible
 from ._model import structure
 from ._params import Params
-from ._paths._lanes import Lanes, lane_scan
+from ._paths import AbstractPath, as_path
+from ._paths._lanes import lane_scan
 from ._smooth import filter_moments
 
 
@@ -77,10 +78,11 @@ def lane_innovations(params: Params, batch: SensorSeries, method: str = "kckf",
 
 
 def hall_nll(params: Params, series: SensorSeries, method: str = "kckf",
-             lanes: bool | None = None) -> Float[Array, ""]:
+             path: str | AbstractPath = "auto") -> Float[Array, ""]:
     """The negative log-likelihood (nats) of every Hall voltage of ``series`` (one trial ``T``
     or a batch ``B T``) given the earlier ones, per reading (the module docstring).
-    ``lanes``: compute the innovations on the lanes path (default: for a batch of at least
+    ``path`` lays out the innovations' scan (``AbstractPath.batch_layout``: ``"lanes"``, or
+    a ``vmap`` of the one-trial scan; ``"auto"``: lanes for a batch of at least
     ``Lanes.min_trials`` trials); the same value either way, to rounding."""
     batch = jax.tree_util.tree_map(jnp.asarray, series)
     if batch.dt.ndim == 1:
@@ -88,9 +90,7 @@ def hall_nll(params: Params, series: SensorSeries, method: str = "kckf",
     # Screened once (``plausible``: the readings the filter uses), for both kinds of term.
     batch = plausible(params, jax.tree_util.tree_map(
         lambda x: x.astype(params.log_q.dtype), batch))
-    if lanes is None:
-        lanes = batch.dt.shape[0] >= Lanes().min_trials
-    if lanes:
+    if as_path(path).batch_layout(batch.dt.shape[0]) == "lanes":
         nu, s, valid = lane_innovations(params, batch, method)
     else:
         nu, s, valid = jax.vmap(lambda x: innovations(params, x, method))(batch)

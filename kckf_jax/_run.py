@@ -29,7 +29,7 @@ from ._kernel import (
     pad_series,
 )
 from ._params import Params
-from ._paths import AbstractPath, Auto, PathChoice, Segments, Sequential, as_path, is_traced
+from ._paths import AbstractPath, PathChoice, as_path
 from ._session import Session, split_at_gaps
 from ._smooth import smooth_batch
 
@@ -48,14 +48,7 @@ def choose_path(params: Params, series: SensorSeries, method: str = "kckf",
         ('sequential', '5 rows, not more than 4096')
     """
     check_method(method)
-    p = as_path(path)
-    if isinstance(p, Auto):
-        return p.select(params, series, method, state)
-    why = p.applies(params, series, method, state=state)
-    if why is not None:
-        raise ValueError(f"path={p.name!r} does not apply: {why}; use path='auto' (the "
-                         "fastest that applies) or 'sequential'")
-    return PathChoice(p, {})
+    return as_path(path).choose(params, series, method, state)
 
 
 def run_filter(
@@ -91,14 +84,8 @@ def run_filter(
     chosen = choose_path(params, series, method, path, state).path
     if state is None:
         state = init_state(params, method)
-    if isinstance(chosen, Segments) and not is_traced(params, series, state):
-        final, est, ok = _segments_on_host(
-            chosen, lambda last: _run_one_pass(chosen, params, series, method, state, last))
-        if ok:
-            return final, _named(est, chosen, params, faults)
-        chosen = Sequential()  # the segments' check failed, and so did its repairs
-    final, est = _run_one(chosen, params, series, method, state)
-    return final, _named(est, chosen, params, faults)
+    out = chosen.compute(params, _one(series), method, _one(state))
+    return _first(out.final), _named(_first(out.estimate), out.path, params, faults)
 
 
 def _named(est: Estimate, path: AbstractPath, params: Params, faults) -> Estimate:
@@ -134,30 +121,6 @@ def _first(x):
     return jax.tree_util.tree_map(lambda a: a[0], x)
 
 
-@eqx.filter_jit
-def _run_one(path: AbstractPath, params, series, method, state):
-    return _first(path.run(params, _one(series), method, _one(state)))
-
-
-def _segments_on_host(path: Segments, run_pass) -> tuple[FilterState, Estimate, bool]:
-    """The segments' first pass, then repair passes while the check fails, each pass a
-    program of its own (``run_pass(last)``, ``last`` the pass before or ``None``): a recording
-    whose check passes compiles no repair pass, a failed one compiles one and runs it up to
-    ``path.repairs`` times. Returns the last pass's final state, estimates and check."""
-    final, est, last = run_pass(None)
-    for _ in range(path.repairs):
-        if bool(last.ok):
-            break
-        final, est, last = run_pass(last)
-    return final, est, bool(last.ok)
-
-
-@eqx.filter_jit
-def _run_one_pass(path: Segments, params, series, method, state, last):
-    final, est, this = path.run_pass(params, _one(series), method, _one(state), last)
-    return _first((final, est)) + (this._replace(rows=None),)
-
-
 def filter_batch(params: Params, series: SensorSeries, method: str = "kckf",
                  path: str | AbstractPath = "auto") -> Estimate:
     """``run_filter`` over a batch of trials (leading axis ``B``, padded to one length with
@@ -173,27 +136,9 @@ def filter_batch(params: Params, series: SensorSeries, method: str = "kckf",
     check_method(method)
     series, faults = screened(params, series)
     chosen = choose_path(params, series, method, path).path
-    if isinstance(chosen, Segments) and not is_traced(params, series):
-        _, est, ok = _segments_on_host(
-            chosen, lambda last: _run_batch_pass(chosen, params, series, method, last))
-        if ok:
-            return _named(est, chosen, params, faults)
-        chosen = Sequential()  # the segments' check failed, and so did its repairs
-    est = _run_batch(chosen, params, series, method)
-    return _named(est, chosen, params, faults)
-
-
-@eqx.filter_jit
-def _run_batch(path: AbstractPath, params, series, method):
     state = init_states(params, method, jnp.shape(series.dt)[0])
-    return path.run(params, series, method, state)[1]
-
-
-@eqx.filter_jit
-def _run_batch_pass(path: Segments, params, series, method, last):
-    state = init_states(params, method, jnp.shape(series.dt)[0])
-    final, est, this = path.run_pass(params, series, method, state, last)
-    return final, est, this._replace(rows=None)
+    out = chosen.compute(params, series, method, state)
+    return _named(out.estimate, out.path, params, faults)
 
 
 # ---------------------------------------------------------------------------- sessions

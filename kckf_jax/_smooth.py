@@ -24,7 +24,6 @@ import dataclasses
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from ._kernel import (
     Estimate,
@@ -40,8 +39,7 @@ from ._kernel import (
 )
 from ._model import FILTER_METHODS, structure
 from ._params import Params
-from ._paths._base import is_traced
-from ._paths._lanes import Lanes
+from ._paths import AbstractPath, as_path, is_traced
 from ._paths._lanes_smooth import lane_smooth
 from ._paths._steady_smooth import SteadySmoother
 from ._rts import rts_rows
@@ -116,7 +114,7 @@ SMOOTH_PATHS = ("auto", "sequential", "lanes", "steady")
 
 
 def smooth_batch(params: Params, series: SensorSeries, method: str = "kckf",
-                 path: str = "auto") -> Estimate:
+                 path: str | AbstractPath = "auto") -> Estimate:
     """``smooth`` over a batch of padded trials (leading axis ``B``; ``pad_series``).
 
     ``path``, as the filter's: ``"steady"`` (a regular recording whose filter and smoother
@@ -125,7 +123,9 @@ def smooth_batch(params: Params, series: SensorSeries, method: str = "kckf",
     (``vmap`` of the one-recording smoother) or ``"auto"``: steady where it applies, else lanes
     for a batch of at least ``Lanes.min_trials`` trials, else sequential (inside ``jit`` or
     ``grad`` the data cannot be checked: ``"auto"`` does not take the steady path there, an
-    explicit ``"steady"`` vouches for the data). The same estimates to rounding;
+    explicit ``"steady"`` vouches for the data); or a path object, which decides
+    (``AbstractPath.smoother_layout``: an ``Auto`` of the caller's moves the smoother as it
+    moves the filter). The same estimates to rounding;
     ``Estimate.path`` is ``"smoothed"`` (sequential), ``"smoothed:lanes"`` or
     ``"smoothed:steady"``."""
     _check(method)
@@ -135,7 +135,11 @@ def smooth_batch(params: Params, series: SensorSeries, method: str = "kckf",
 def _smooth_on(name: str, params: Params, series: SensorSeries, method: str) -> Estimate:
     """The batch smoothed on the path ``name`` (``_smooth_path``'s choice), labelled."""
     if name == "steady":
-        est = _smooth_steady(SteadySmoother(), params, series, method)
+        smoother = SteadySmoother()
+        why = None if is_traced(params, series) else smoother.applies(params, series, method)
+        if why is not None:
+            raise ValueError(f"smooth: the steady path does not apply: {why}")
+        est = _smooth_steady(smoother, params, series, method)
     elif name == "lanes":
         est = _smooth_lanes(params, series, method)
     else:
@@ -144,23 +148,13 @@ def _smooth_on(name: str, params: Params, series: SensorSeries, method: str) -> 
     return dataclasses.replace(est, path=label, names=params.robot.angle_names)
 
 
-def _smooth_path(params: Params, series: SensorSeries, method: str, path: str) -> str:
-    """The smoother's path for a batch: ``path`` once checked, or ``"auto"``'s pick."""
-    if path not in SMOOTH_PATHS:
+def _smooth_path(params: Params, series: SensorSeries, method: str,
+                 path: str | AbstractPath) -> str:
+    """The smoother's layout for a batch: the path's answer (``smoother_layout``)."""
+    if isinstance(path, str) and path not in SMOOTH_PATHS:
         raise ValueError(f"smooth: unknown path {path!r}; expected one of "
-                         f"{', '.join(SMOOTH_PATHS)}")
-    if path == "steady" and is_traced(params, series):
-        return "steady"  # inside jit or grad: the caller vouches for the data, as for a filter
-    if path in ("auto", "steady"):
-        why = SteadySmoother().applies(params, series, method)
-        if why is None:
-            return "steady"
-        if path == "steady":
-            raise ValueError(f"smooth: the steady path does not apply: {why}")
-    if path == "auto":
-        n_trials = np.shape(series.dt)[0]
-        return "lanes" if n_trials >= Lanes().min_trials else "sequential"
-    return path
+                         f"{', '.join(SMOOTH_PATHS)} or a path object")
+    return as_path(path).smoother_layout(params, series, method)
 
 
 def _check(method: str) -> None:

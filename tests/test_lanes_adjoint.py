@@ -144,10 +144,10 @@ def test_likelihood_gradient_equals_the_sequential_one_float64(method):
     pass, with the cotangents of every innovation and its variance."""
     params, batch = recorded_like("x,y,x,y", overflow=False)
     grad = eqx.filter_jit(eqx.filter_value_and_grad(
-        lambda p, lanes: hall_nll(p, batch, method, lanes=lanes)))
-    (v0, g0), (v1, g1) = grad(params, True), grad(params, False)
+        lambda p, path: hall_nll(p, batch, method, path=path)))
+    (v0, g0), (v1, g1) = grad(params, "lanes"), grad(params, "sequential")
     assert float(v0) == pytest.approx(float(v1), rel=1e-11)
     assert_close(g0, g1, 1e-9)
-    data = eqx.filter_jit(jax.grad(lambda b, lanes: hall_nll(params, b, method, lanes=lanes)))
-    (d0, d1) = data(batch, True), data(batch, False)  # through the states and held rates
+    data = eqx.filter_jit(jax.grad(lambda b, path: hall_nll(params, b, method, path=path)))
+    (d0, d1) = data(batch, "lanes"), data(batch, "sequential")  # through the states and held rates
     assert_close((d0.dt, d0.gyro, d0.hall_v), (d1.dt, d1.gyro, d1.hall_v), 1e-9)

@@ -8,6 +8,8 @@ size.
 
 from __future__ import annotations
 
+from typing import ClassVar
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -15,6 +17,7 @@ import numpy as np
 import pytest
 
 from kckf_jax import (
+    AbstractPath,
     Auto,
     Lanes,
     Params,
@@ -24,10 +27,16 @@ from kckf_jax import (
     Steady,
     choose_path,
     filter_batch,
+    filter_sessions,
+    loss_fn,
+    make_batch,
     pad_series,
     run_filter,
+    session_series,
     simulate,
+    smooth_batch,
 )
+from kckf_jax._likelihood import hall_nll
 
 DEG = np.pi / 180
 #: Small constants: the head is 256 / 512 rows, chunk groups nest several levels deep, and a
@@ -301,3 +310,109 @@ def test_lanes_checkpointed_in_chunks_gives_the_same_values_and_gradients():
     for a, b in zip(jax.tree_util.tree_leaves(eqx.filter(g0, eqx.is_inexact_array)),
                     jax.tree_util.tree_leaves(eqx.filter(g1, eqx.is_inexact_array))):
         np.testing.assert_allclose(np.asarray(b), np.asarray(a), rtol=1e-10, atol=1e-14)
+
+
+class _Reversed(AbstractPath):
+    """A toy path by the docs' recipe (``kckf_jax._paths``): the sequential scan of the trials
+    in reverse order, reversed back; nothing in the package knows of it."""
+
+    name: ClassVar[str] = "reversed"
+
+    def applies(self, params, series, method, state=None):
+        return None if np.ndim(series.dt) > 1 else "needs a batch"
+
+    def run(self, params, series, method, state):
+        flip = lambda t: jax.tree_util.tree_map(lambda x: x[::-1], t)  # noqa: E731
+        final, est = Sequential().run(params, flip(series), method, flip(state))
+        return flip(final), flip(est)
+
+
+def test_a_path_added_by_the_recipe_runs_everywhere_and_nothing_else_changes():
+    """Passed as ``path=`` to the filter calls and the loss, offered to ``Auto`` as ``before``,
+    and asked every question the package asks of a path (its answers the defaults)."""
+    robot = Robot.from_spec("x,y")
+    sessions = [simulate(robot, "cyclic", seed=s, duration_s=1.0 + 0.3 * s, drop_prob=0.05)
+                for s in range(3)]
+    params = Params.paper_defaults(robot, dtype=jnp.float64)
+    batch = pad_series([session_series(s, np.float64) for s in sessions])
+    ref = filter_batch(params, batch, "kckf", path="sequential")
+    toy = filter_batch(params, batch, "kckf", path=_Reversed())
+    assert toy.path == "reversed"
+    close(toy.angles, ref.angles, 1e-12)
+    auto = Auto(before=(_Reversed(),))
+    assert choose_path(params, batch, "kckf", auto).path == _Reversed()
+    assert filter_batch(params, batch, "kckf", path=auto).path == "reversed"
+    # One recording: the toy path does not apply, says why, and Auto goes on.
+    one = session_series(sessions[0], np.float64)
+    choice = choose_path(params, one, "kckf", auto)
+    assert choice.passed_over["reversed"] == "needs a batch" and choice.path.name != "reversed"
+    with pytest.raises(ValueError, match="path='reversed' does not apply: needs a batch"):
+        run_filter(params, one, "kckf", path=_Reversed())
+    # The fit's loss, the smoother and the likelihood take it as any path.
+    b = make_batch(sessions, jnp.float64)
+    assert float(loss_fn(params, b, path=_Reversed())) == pytest.approx(
+        float(loss_fn(params, b, path="sequential")), rel=1e-12)
+    assert smooth_batch(params, batch, "kckf", path=_Reversed()).path == "smoothed"
+    assert float(hall_nll(params, batch, path=_Reversed())) == pytest.approx(
+        float(hall_nll(params, batch, path="sequential")), rel=1e-12)
+    assert filter_sessions(sessions, "kckf", params, path=_Reversed())[0].path == "reversed"
+
+
+def test_auto_under_a_callers_trace_decides_on_shapes_as_documented():
+    """Inside ``jit``: no steady (its checks need values), lanes for a batch of
+    ``lanes.min_trials`` trials, segments for a long recording, else sequential."""
+    robot = Robot.from_spec("x")
+    params = Params.paper_defaults(robot)
+    picked = {}
+
+    def pick(name, series):
+        def f(dt, gyro, hall_v):
+            choice = choose_path(params, SensorSeries(dt, gyro, hall_v), "kckf")
+            picked[name] = (choice.path.name, choice.passed_over)
+            return dt.sum()
+
+        jax.jit(f)(series.dt, series.gyro, series.hall_v)
+
+    def rows(B, T):
+        shape = (B, T) if B else (T,)
+        return SensorSeries(jnp.full(shape, 0.01), jnp.zeros(shape + (6,)),
+                            jnp.full(shape + (2,), 1.3))
+
+    lanes = Auto().lanes.min_trials
+    pick("batch", rows(lanes, 50))
+    pick("few", rows(lanes - 1, 50))
+    pick("long", rows(None, 40_000))
+    pick("short", rows(None, 500))
+    assert picked["batch"][0] == "lanes" and "traced" in picked["batch"][1]["steady"]
+    assert picked["few"][0] == "sequential"
+    assert picked["long"][0] == "segments"
+    assert picked["short"][0] == "sequential"
+    # The layouts the smoother and the likelihood take follow the same policy.
+    assert Auto().batch_layout(lanes) == "lanes" and Auto().batch_layout(lanes - 1) == (
+        "sequential")
+    assert Auto(lanes=Lanes(min_trials=4)).batch_layout(4) == "lanes"
+
+
+def test_no_path_is_decided_outside_the_paths_package():
+    """No class check of a path and no path's threshold outside ``kckf_jax/_paths``: every
+    question goes to the path objects (``AbstractPath``)."""
+    import ast
+    import pathlib
+
+    import kckf_jax
+
+    root = pathlib.Path(kckf_jax.__file__).parent
+    classes = {"Sequential", "Steady", "Lanes", "Segments", "Parallel", "Auto"}
+    bad = []
+    for f in root.rglob("*.py"):
+        if "_paths" in f.parts:
+            continue
+        for node in ast.walk(ast.parse(f.read_text())):
+            if isinstance(node, ast.Attribute) and node.attr in (
+                    "min_trials", "min_rows", "min_segments"):
+                bad.append(f"{f.name}:{node.lineno}: .{node.attr}")
+            if (isinstance(node, ast.Call) and getattr(node.func, "id", "") == "isinstance"
+                    and {n.id for n in ast.walk(node.args[1]) if isinstance(n, ast.Name)}
+                    & classes):
+                bad.append(f"{f.name}:{node.lineno}: isinstance")
+    assert bad == []

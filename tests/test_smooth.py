@@ -173,11 +173,11 @@ def test_likelihood_on_lanes_equals_the_step_values_and_gradients():
     batch = pad_series(trials)
     nll = eqx.filter_jit(hall_nll)  # one program a call, not one per operation
     for method in ("kckf", "kf"):
-        seq = float(nll(params, batch, method, lanes=False))
-        assert float(nll(params, batch, method, lanes=True)) == pytest.approx(seq, rel=1e-12)
-    grads = [eqx.filter_jit(eqx.filter_grad(lambda p, lanes=lanes: hall_nll(p, batch,
-                                                                            lanes=lanes)))(params)
-             for lanes in (False, True)]
+        seq = float(nll(params, batch, method, path="sequential"))
+        assert float(nll(params, batch, method, path="lanes")) == pytest.approx(seq, rel=1e-12)
+    grads = [eqx.filter_jit(eqx.filter_grad(lambda p, path=path: hall_nll(p, batch,
+                                                                          path=path)))(params)
+             for path in ("sequential", "lanes")]
     a, b = (jax.tree_util.tree_leaves(eqx.filter(g, eqx.is_inexact_array)) for g in grads)
     for x, y in zip(a, b):
         np.testing.assert_allclose(np.asarray(y), np.asarray(x), rtol=1e-9, atol=1e-12)

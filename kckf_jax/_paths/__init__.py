@@ -13,15 +13,18 @@
 * ``Parallel``: covariance phase, then the mean by associative scan (accelerators);
 * ``Auto``: the policy.
 
-To add a path: a final ``AbstractPath`` subclass in a module of its own, exported here and from
-``kckf_jax``, and a line in ``Auto.select``; nothing else changes.
+To add a path: a final ``AbstractPath`` subclass (``applies`` and ``run``; the other questions
+have defaults) passed as ``path=`` to any filter call or loss, or offered to the policy as
+``Auto(before=(MyPath(),))``; nothing else changes (``tests/test_paths.py`` adds one so). A
+path of the package also gets a module of its own here, an export, and a name in ``PATHS``.
 """
 
 from ._affine import converged_map as converged_map
 from ._auto import Auto as Auto
-from ._auto import PathChoice as PathChoice
 from ._base import STEP_TOL_S as STEP_TOL_S
 from ._base import AbstractPath as AbstractPath
+from ._base import PathChoice as PathChoice
+from ._base import PathRun as PathRun
 from ._base import is_traced as is_traced
 from ._base import readings_present as readings_present
 from ._base import regular_step as regular_step

@@ -3,46 +3,49 @@
 
 from __future__ import annotations
 
-from typing import ClassVar, NamedTuple
+from typing import ClassVar
 
 import jax
 import numpy as np
 
 from .._kernel import Estimate, FilterState, SensorSeries
 from .._params import Params
-from ._base import AbstractPath, is_traced
+from ._base import AbstractPath, PathChoice, PathRun, is_traced
 from ._lanes import Lanes
 from ._parallel import Parallel
 from ._segments import Segments
 from ._sequential import Sequential
 from ._steady import Steady
-
-
-class PathChoice(NamedTuple):
-    """The path ``Auto`` picked, and why each faster one was passed over (``{name: reason}``)."""
-
-    path: AbstractPath
-    passed_over: dict[str, str]
+from ._steady_smooth import SteadySmoother
 
 
 class Auto(AbstractPath):
-    """The fastest path that applies: ``Steady`` on a regular recording whose covariance
-    converges; else, for a Kalman filter, ``Lanes`` for a batch of at least
-    ``lanes.min_trials`` trials; else ``Segments`` for recordings long enough to cut into
-    ``segments.min_segments`` segments (``segments=None``: never); else ``Parallel`` on an
-    accelerator and ``Sequential`` on a CPU.
+    """The fastest path that applies: any of ``before`` that applies, in order; then
+    ``Steady`` on a regular recording whose covariance converges; else, for a Kalman filter,
+    ``Lanes`` for a batch of at least ``lanes.min_trials`` trials; else ``Segments`` for
+    recordings long enough to cut into ``segments.min_segments`` segments (``segments=None``:
+    never); else ``Parallel`` on an accelerator and ``Sequential`` on a CPU.
 
     The choice is made on concrete inputs before anything is traced (``run_filter``,
     ``filter_batch``, ``filter_sessions`` and the fitting loss all resolve ``Auto`` first).
-    Inside a transformation (``jit``, ``grad``, ``vmap`` of the caller's) the data cannot be
-    checked, so ``Auto`` takes the path that needs no check (``Sequential``) and says so in
-    ``passed_over``; pass a path explicitly to vouch for the data instead.
+    Inside a transformation of the caller's (``jit``, ``grad``, ``vmap``) the values cannot be
+    checked: ``Auto`` passes ``Steady`` over (its checks need them) and decides on shapes
+    alone: ``Lanes`` for a batch of ``lanes.min_trials`` trials or more, ``Segments`` for a
+    recording long enough (its check then runs inside the program, each repair and the
+    sequential fallback in a ``lax.cond``), else ``Sequential``; ``passed_over`` says so. Pass
+    a path explicitly to vouch for the data instead.
+
+    The same policy lays out the smoother and the likelihood (``batch_layout``,
+    ``smoother_layout``), so ``Auto(lanes=Lanes(min_trials=4))`` moves all three;
+    ``for_loss`` is the policy a fitting loss uses.
 
     Attributes:
         steady: the ``Steady`` path to try (its constants).
         lanes: the ``Lanes`` path to try (its constants).
         segments: the ``Segments`` path to try (its constants), or ``None``.
         sequential: the ``Sequential`` path to fall back on (its remat chunk).
+        before: paths of the caller's to try first, in order (a path added by
+            ``docs/performance.md``'s recipe: no line of this class changes).
     """
 
     name: ClassVar[str] = "auto"
@@ -50,11 +53,53 @@ class Auto(AbstractPath):
     lanes: Lanes = Lanes()
     segments: Segments | None = Segments()
     sequential: Sequential = Sequential()
+    before: tuple[AbstractPath, ...] = ()
+
+    def for_loss(self, remat_chunk: int | None = None, gradient: bool = True) -> Auto:
+        """The policy for a fitting loss: not ``Segments`` (its warm-ups cut each segment's
+        dependence on the rows before it, which the values' check vouches for but a gradient
+        would not see); ``Sequential(remat_chunk)`` to fall back on; and, for a gradient
+        (``gradient``; a validation loss is not one) not chunked for memory
+        (``remat_chunk=None``), ``Lanes`` from one trial on.
+
+        Its hand-written reverse pass (``_lanes_adjoint``) makes the lanes gradient faster
+        than the sequential path's at every batch measured, where a filter run once is done
+        sooner on the sequential path below ``Lanes.min_trials`` (the lanes program compiles
+        longer; docs/performance.md). Recorded-like bench rows, float32, AMD EPYC,
+        2026-12-04, one RMSE value and gradient, each loop one kernel (``_cpu_loops``): 1 x
+        5,000 rows 12 ms against 65 ms, 8 x 5,000 63 against 151 ms (with every kernel
+        launched apart: 1 x 4,000 36 against 67 ms, 3 x 4,000 53 against 84 ms). It keeps
+        every row's state and gains (about 1.1 kB per trial-step with the rows' inputs), so a
+        gradient the sequential path would chunk for memory keeps ``lanes`` as it is."""
+        lanes = Lanes(min_trials=1) if gradient and remat_chunk is None else self.lanes
+        return Auto(steady=self.steady, lanes=lanes, segments=None,
+                    sequential=Sequential(remat_chunk), before=self.before)
+
+    def batch_layout(self, n_trials: int) -> str:
+        """``"lanes"`` for ``lanes.min_trials`` trials or more, else ``"sequential"``."""
+        return "lanes" if n_trials >= self.lanes.min_trials else "sequential"
+
+    def smoother_layout(self, params: Params, series: SensorSeries, method: str) -> str:
+        """``"steady"`` where the steady smoother applies (concrete inputs), else
+        ``batch_layout``'s."""
+        if not is_traced(params, series):
+            if SteadySmoother(steady=self.steady).applies(params, series, method) is None:
+                return "steady"
+        return self.batch_layout(int(np.shape(series.dt)[0]))
+
+    def choose(self, params: Params, series: SensorSeries, method: str,
+               state: FilterState | None = None) -> PathChoice:
+        return self.select(params, series, method, state)
 
     def select(self, params: Params, series: SensorSeries, method: str,
                state: FilterState | None = None) -> PathChoice:
         """The path for these inputs, and why each faster one does not apply."""
         passed: dict[str, str] = {}
+        for path in self.before:
+            why = path.applies(params, series, method, state)
+            if why is None:
+                return PathChoice(path, passed)
+            passed[path.name] = why
         if is_traced(params, series, state):
             passed["steady"] = "the inputs are traced (inside jit or grad): not checked"
         else:
@@ -89,6 +134,11 @@ class Auto(AbstractPath):
             ) -> tuple[FilterState, Estimate]:
         return self.select(params, series, method, state).path.run(params, series, method,
                                                                    state)
+
+    def compute(self, params: Params, series: SensorSeries, method: str,
+                state: FilterState) -> PathRun:
+        return self.select(params, series, method, state).path.compute(params, series,
+                                                                       method, state)
 
 
 def _dtype(params: Params, state: FilterState | None):

@@ -5,13 +5,16 @@ A *path* is one way of computing the filter's estimates (``Sequential``, ``Stead
 ``Parallel``, ...); every path gives the same estimates to rounding. ``applies`` says, on
 concrete inputs, why a path cannot compute them (or ``None``); ``run`` computes them for a
 batch of trials. ``Auto`` (``_auto.py``) asks the faster paths in turn, and the first that
-applies runs.
+applies runs. A path answers every other question the filter, the smoother, the likelihood
+and the fit ask of it (``compute``, ``batch_layout``, ``smoother_layout``, ``recheck``), so
+that nothing outside ``_paths`` looks at which path it is.
 """
 
 from __future__ import annotations
 
 import abc
 import functools
+from typing import NamedTuple
 
 import equinox as eqx
 import jax
@@ -35,6 +38,24 @@ def kalman_only(method: str) -> str | None:
     return None if method in FILTER_METHODS else f"method {method!r} is not a Kalman filter"
 
 
+class PathRun(NamedTuple):
+    """What ``AbstractPath.compute`` computed: the final state and the estimates (leading
+    axis ``B``), and the path whose result they are (a checked path whose check failed
+    names the path it fell back on)."""
+
+    final: FilterState
+    estimate: Estimate
+    path: AbstractPath
+
+
+class PathChoice(NamedTuple):
+    """The path chosen (``AbstractPath.choose``), and why each faster one was passed over
+    (``{name: reason}``)."""
+
+    path: AbstractPath
+    passed_over: dict[str, str]
+
+
 class AbstractPath(eqx.Module):
     """One way of computing the filter's estimates.
 
@@ -47,9 +68,52 @@ class AbstractPath(eqx.Module):
     * ``run(params, series, method, state) -> (FilterState, Estimate)``: the filter over a
       batch of trials (``series`` with a leading axis ``B``, ``state`` batched the same way);
       traceable (no host work), differentiable.
+
+    and may refine what the others ask (defaults here): ``compute`` (how ``run_filter`` and
+    ``filter_batch`` run it from the host), ``batch_layout`` and ``smoother_layout`` (how the
+    likelihood and the smoother lay out a batch for it), ``recheck`` (whether a fitting loss
+    may keep it once the parameters moved).
     """
 
     name: eqx.AbstractClassVar[str]
+
+    def choose(self, params: Params, series: SensorSeries, method: str,
+               state: FilterState | None = None) -> PathChoice:
+        """The path to run for these inputs: this one, once it is checked to apply (a
+        ``ValueError`` says why not); a policy (``Auto``) picks one."""
+        why = self.applies(params, series, method, state=state)
+        if why is not None:
+            raise ValueError(f"path={self.name!r} does not apply: {why}; use path='auto' (the "
+                             "fastest that applies) or 'sequential'")
+        return PathChoice(self, {})
+
+    def compute(self, params: Params, series: SensorSeries, method: str,
+                state: FilterState) -> PathRun:
+        """``run`` from the host, compiled once per shapes (``run_filter`` and
+        ``filter_batch`` call this and nothing else). A path that checks its result on the
+        host overrides it (``Segments``: repair passes, each a program of its own, then the
+        sequential path)."""
+        final, est = _compiled_run(self, params, series, method, state)
+        return PathRun(final, est, self)
+
+    def batch_layout(self, n_trials: int) -> str:
+        """How the likelihood's innovations and the smoother lay out a batch of ``n_trials``
+        for this path: ``"lanes"`` (the trials as the last axis) or ``"sequential"`` (a
+        ``vmap`` of the one-trial scan)."""
+        return "sequential"
+
+    def smoother_layout(self, params: Params, series: SensorSeries, method: str) -> str:
+        """The smoother's layout for this path on ``series``: ``"steady"``, ``"lanes"`` or
+        ``"sequential"`` (``smooth_batch``); a ``ValueError`` says why a layout asked for does
+        not apply."""
+        return self.batch_layout(int(np.shape(series.dt)[0]))
+
+    def recheck(self, params: Params, method: str, step_s: float | None) -> str | None:
+        """Why a fitting loss may no longer run this path once the parameters moved
+        (``params`` concrete; ``step_s`` the data's constant time step, or ``None``): only what
+        depends on the parameters is checked again, as the data did not change. ``None``:
+        keep it."""
+        return None
 
     @abc.abstractmethod
     def applies(self, params: Params, series: SensorSeries, method: str,
@@ -60,6 +124,11 @@ class AbstractPath(eqx.Module):
     def run(self, params: Params, series: SensorSeries, method: str, state: FilterState
             ) -> tuple[FilterState, Estimate]:
         raise NotImplementedError
+
+
+@eqx.filter_jit
+def _compiled_run(path: AbstractPath, params, series, method, state):
+    return path.run(params, series, method, state)
 
 
 def is_traced(*trees) -> bool:

@@ -241,6 +241,9 @@ class Lanes(AbstractPath):
                 state: FilterState | None = None) -> str | None:
         return kalman_only(method)
 
+    def batch_layout(self, n_trials: int) -> str:
+        return "lanes"
+
     def run(self, params: Params, series: SensorSeries, method: str, state: FilterState
             ) -> tuple[FilterState, Estimate]:
         st = structure(params.robot, method)

@@ -22,9 +22,10 @@ and the pass is checked the same way (every segment must end where it ended in t
 before, so that the next one entered right). One pass costs ``T / S`` iterations, about two
 thirds of the first (``T / S + warmup``), where the sequential path costs ``T``. Only where
 the repairs fail too is the recording filtered by the sequential path, and ``run_filter`` and
-``filter_batch`` say so (``Estimate.path`` is ``"sequential"``). They run each pass as a
-program of its own (``Segments.run_pass``), so that a recording whose check passes compiles
-no repair; under a caller's ``jit``, ``Segments.run`` has every pass in one program.
+``filter_batch`` say so (``Estimate.path`` is ``"sequential"``). From the host
+(``Segments.compute``) each pass is a program of its own, so that a recording whose check
+passes compiles no repair; under a caller's ``jit``, ``Segments.run`` has every pass in one
+program (each repair and the sequential fallback in a ``lax.cond``).
 """
 
 from __future__ import annotations
@@ -40,7 +41,7 @@ from jaxtyping import Array, Bool
 from .._kernel import Estimate, FilterState, SensorSeries, plausible
 from .._model import structure
 from .._params import Params
-from ._base import AbstractPath, kalman_only
+from ._base import AbstractPath, PathRun, is_traced, kalman_only
 from ._lanes import NO_OP_INPUTS, lane_estimates, lane_inputs, lane_scan
 from ._sequential import Sequential
 
@@ -109,13 +110,28 @@ class Segments(AbstractPath):
         return jax.lax.cond(ok, lambda: (final, est),
                             lambda: Sequential().run(params, series, method, state))
 
+    def compute(self, params: Params, series: SensorSeries, method: str,
+                state: FilterState) -> PathRun:
+        """From the host: the first pass, then repair passes while the check fails, each pass a
+        program of its own (a recording whose check passes compiles no repair; a failed one
+        compiles one and runs it up to ``repairs`` times), then, where they fail too, the
+        sequential path (``PathRun.path`` says which ran). Under a caller's trace: ``run``."""
+        if is_traced(params, series, state):
+            return super().compute(params, series, method, state)
+        last = None
+        for _ in range(self.repairs + 1):
+            final, est, last = _one_pass(self, params, series, method, state, last)
+            if bool(last.ok):
+                return PathRun(final, est, self)
+        return Sequential().compute(params, series, method, state)
+
     def run_checked(self, params: Params, series: SensorSeries, method: str,
                     state: FilterState) -> tuple[FilterState, Estimate, Bool[Array, ""]]:
         """The segmented filter and whether every segment's check passed (if not, the
         estimates are not the sequential path's: use ``run``, which falls back). The first
         pass and every repair pass (each in a ``lax.cond``) in one program, for a caller's
-        ``jit``; ``run_filter`` and ``filter_batch`` run ``run_pass`` on the host instead,
-        each pass a program of its own, so that a recording whose check passes compiles no
+        ``jit``; from the host ``compute`` runs ``run_pass`` instead, each pass a program of
+        its own, so that a recording whose check passes compiles no
         repair (one recorded-like hour: 2.95 -> 1.75 s of compiling)."""
         last = self.run_pass(params, series, method, state)[2]
         B, T = jnp.shape(series.dt)
@@ -196,6 +212,12 @@ class Segments(AbstractPath):
         est = Estimate(trials(angles), trials(std), trials(bias),
                        trials(jnp.moveaxis(skipped, 0, 1)))
         return FilterState(*(_split(x, B, S)[:, -1] for x in this.ended)), est
+
+
+@eqx.filter_jit
+def _one_pass(path: Segments, params, series, method, state, last):
+    final, est, this = path.run_pass(params, series, method, state, last)
+    return final, est, this._replace(rows=None)
 
 
 class SegmentPass(NamedTuple):

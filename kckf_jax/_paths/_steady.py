@@ -123,6 +123,18 @@ class Steady(AbstractPath):
         P0 = P0 if P0.ndim == 3 else P0[0]
         return self.converges(params, method, step_s, P0)
 
+    def smoother_layout(self, params: Params, series: SensorSeries, method: str) -> str:
+        """``"steady"``: the smoother's backward pass a constant map too (``SteadySmoother``,
+        which says why where it does not apply; under a caller's trace the caller vouches,
+        as for the filter)."""
+        return "steady"
+
+    def recheck(self, params: Params, method: str, step_s: float | None) -> str | None:
+        """The covariance must still converge with the new parameters (``converges``)."""
+        if step_s is None or is_traced(params):
+            return None
+        return self.converges(params, method, step_s, init_state(params, method).P)
+
     def converges(self, params: Params, method: str, step_s: float,
                   P0: Float[Array, "Nb Nz Nz"]) -> str | None:
         """The one convergence check: ``None`` when the covariance of a regular recording with
