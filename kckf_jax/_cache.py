@@ -9,8 +9,9 @@ import os
 def keep_compiled_programs() -> None:
     """Keep compiled programs between runs of the command (XLA's persistent cache): a second
     ``kckf evaluate`` of the same shapes loads what the first compiled instead of compiling
-    again. In ``$KCKF_CACHE_DIR`` (default ``~/.cache/kckf-jax/xla``; empty: off); a cache
-    that JAX was given already (``JAX_COMPILATION_CACHE_DIR``) is left as it is."""
+    again. In ``$KCKF_CACHE_DIR`` (default ``~/.cache/kckf-jax/xla``; empty: off), programs
+    that took ``min_compile_s()`` or longer to compile; a cache that JAX was given already
+    (``JAX_COMPILATION_CACHE_DIR``) is left as it is."""
     if "JAX_COMPILATION_CACHE_DIR" in os.environ:
         return
     path = os.environ.get("KCKF_CACHE_DIR",
@@ -24,4 +25,17 @@ def keep_compiled_programs() -> None:
     import jax
 
     jax.config.update("jax_compilation_cache_dir", path)
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", min_compile_s())
+
+
+def min_compile_s() -> float:
+    """Programs that compiled faster than this are not kept: ``$KCKF_CACHE_MIN_COMPILE_S``
+    seconds, default 0.5 (loading a small program costs about what compiling it does)."""
+    raw = os.environ.get("KCKF_CACHE_MIN_COMPILE_S", "0.5").strip()
+    try:
+        value = float(raw)
+    except ValueError:
+        value = -1.0
+    if not value >= 0.0:
+        raise ValueError(f"KCKF_CACHE_MIN_COMPILE_S={raw!r}: expected seconds, 0 or more")
+    return value

@@ -188,8 +188,9 @@ def _distributed(args) -> None:
         raise UsageError("--coordinator needs --num-processes N and --process-id I")
     import jax
 
-    if jax.default_backend() == "cpu":
-        jax.config.update("jax_cpu_collectives_implementation", "gloo")
+    # Nothing may start JAX's backend before ``initialize`` (asking which it is would): the
+    # CPU collectives are named whatever the backend; only a CPU uses them.
+    jax.config.update("jax_cpu_collectives_implementation", "gloo")
     jax.distributed.initialize(coordinator_address=args.coordinator,
                                num_processes=args.num_processes, process_id=args.process_id)
 
@@ -298,7 +299,7 @@ def cmd_stream(args) -> int:
     if hasattr(source, "rcvbuf_actual"):
         extra = f", receive buffer {source.rcvbuf_actual} bytes"
     print(f"kckf stream: listening on {source.description} (method {method}, "
-          f"{jnp_name(params)}{extra})", file=sys.stderr, flush=True)
+          f"{params.log_q.dtype}{extra})", file=sys.stderr, flush=True)
     try:
         counts = run_stream(source, sink, sf, PacketParser(params.robot, limits=params.limits),
                             max_packets=args.max_packets, idle_timeout=args.idle_timeout,
@@ -312,12 +313,6 @@ def cmd_stream(args) -> int:
                      + ", ".join(f"{k} x{v}" for k, v in faulty.items())])
     _say(args, "kckf stream: " + ", ".join(f"{k} {v}" for k, v in counts.items()))
     return 0
-
-
-def jnp_name(params) -> str:
-    import numpy as np
-
-    return np.dtype(params.log_q.dtype).name
 
 
 def cmd_export(args) -> int:
@@ -369,9 +364,7 @@ def _jsonable(x):
         return [_jsonable(v) for v in x]
     if hasattr(x, "tolist"):
         return _jsonable(np.asarray(x).tolist())
-    if isinstance(x, bool | int | str) or x is None:
-        return x
-    if isinstance(x, float):
+    if isinstance(x, bool | int | str | float) or x is None:
         return x
     return float(x)
 
@@ -491,8 +484,9 @@ def build_parser() -> argparse.ArgumentParser:
     _data_options(e)
     e.set_defaults(func=cmd_evaluate)
 
-    t = sub.add_parser("fit", parents=[common],
-                       help="learned tuning: fit parameters by gradient descent on the mocap RMSE")
+    t = sub.add_parser("fit", parents=[common], help="learned tuning: fit parameters by "
+                       "gradient descent (--loss: the RMSE against motion capture, the Hall "
+                       "readings' likelihood, or both)")
     t.add_argument("sessions", nargs="+", metavar="SESSION")
     t.add_argument("-o", "--output", required=True, help="parameter file to write (JSON)")
     t.add_argument("--val", nargs="+", metavar="SESSION",
@@ -574,12 +568,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     if not getattr(args, "func", None):
         parser.print_help(sys.stderr)
         return 2
-    if getattr(args, "dtype", None) == "float64":
-        import jax
+    import jax
 
-        jax.config.update("jax_enable_x64", True)
     from ._cache import keep_compiled_programs
+    from ._cpu_loops import enable_cpu_loops
 
+    enable_cpu_loops()  # the command's own process, before any computation (KCKF_XLA_LOOPS)
+    if getattr(args, "dtype", None) == "float64":
+        jax.config.update("jax_enable_x64", True)
     keep_compiled_programs()
     try:
         return int(args.func(args) or 0)
