@@ -230,11 +230,15 @@ def static_take(x: Array, idx, axis: int = 0) -> Array:
                         tuple(range(axis, axis + idx.ndim)))
 
 
-def block_gather(st: Structure, values: Float[Array, " K"]) -> Float[Array, "P m1"]:
-    """Per-angle-coordinate values (K,) laid out by block (P, m + 1); padding gets 0."""
+def block_gather(st: Structure, values: Float[Array, " K"], in_loop: bool = True
+                 ) -> Float[Array, "P m1"]:
+    """Per-angle-coordinate values (K,) laid out by block (P, m + 1); padding gets 0.
+    ``in_loop=False`` for every row at once outside a loop: a gather there costs less than
+    ``static_take``'s mask (a (K, n) select per row), and its transpose stays out of loops."""
     idx = st.angle_index
     ext = jnp.concatenate([values, jnp.zeros(1, values.dtype)])
-    return static_take(ext, np.where(idx >= 0, idx, values.shape[0]))
+    at = np.where(idx >= 0, idx, values.shape[0])
+    return static_take(ext, at) if in_loop else ext[at]
 
 
 def predicted_moments(

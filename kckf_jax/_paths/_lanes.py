@@ -47,8 +47,8 @@ def row_inputs(params: Params, st: Structure, dt: Float[Array, "T B"],
     the process noise ``(alpha, beta, gamma)`` (``T m1 Nb B`` each) and each block joint's
     fused Hall reading, its variance and validity (``T m Nb B``)."""
     noise = q_blocks(params.q, params.angle_rw, params.bias_rw, dt[..., None])  # (T, B, K)
-    noise = tuple(jnp.moveaxis(jax.vmap(jax.vmap(lambda x: block_gather(st, x)))(n), 1, -1)
-                  for n in noise)  # (T, Nb, m1, B)
+    laid = jax.vmap(jax.vmap(lambda x: block_gather(st, x, in_loop=False)))
+    noise = tuple(jnp.moveaxis(laid(n), 1, -1) for n in noise)  # (T, Nb, m1, B)
 
     def hall_row(v):
         angle, r, valid = hall_measurements(params, v)
