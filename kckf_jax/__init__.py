@@ -10,6 +10,7 @@ The public API (everything else lives in private modules; docs/architecture.md m
   (and its ``Structure``), ``paper_matrices``;
 * running it: ``run_filter`` (one recording), ``filter_batch`` (padded trials),
   ``filter_sessions`` (recorded sessions), ``session_series``, ``session_params``,
+  ``screened`` (the readings as the filter uses them, and why not: once for many runs),
   ``GapPolicy`` (what happens across a gap in the rows), ``choose_path`` and ``PathChoice``
   (which path runs, and why), ``PathRun`` (what a path computed);
 * offline analysis: ``smooth``, ``smooth_batch`` (the fixed-interval RTS smoother; its steady
@@ -93,6 +94,7 @@ from ._run import choose_path as choose_path
 from ._run import filter_batch as filter_batch
 from ._run import filter_sessions as filter_sessions
 from ._run import run_filter as run_filter
+from ._run import screened as screened
 from ._run import session_params as session_params
 from ._run import session_series as session_series
 from ._screen import FAULT_KINDS as FAULT_KINDS

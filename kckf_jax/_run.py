@@ -95,12 +95,21 @@ def _named(est: Estimate, path: AbstractPath, params: Params, faults) -> Estimat
                                faults=faults)
 
 
-@eqx.filter_jit
-def screened(params: Params, series: SensorSeries) -> tuple[SensorSeries, Array]:
+def screened(params: Params, series: SensorSeries) -> tuple[SensorSeries, Array | None]:
     """``series`` (one recording or a batch) as the filter uses it (the kernel's
     ``plausible``: judged row by row and over time), and why each reading it does not use is
     not used (``Estimate.faults``: codes of ``_screen.FAULT_KINDS``). Every path is given
-    the screened series (``SensorSeries.screened``), so the readings are judged once."""
+    the screened series (``SensorSeries.screened``), so the readings are judged once. To
+    filter one recording many times with parameters of the same Hall curves, screen it once
+    and pass the screened series: it is not judged again (its faults are the codes returned
+    here; ``Estimate.faults`` is then ``None``)."""
+    if series.screened:
+        return series, None
+    return _screened(params, series)
+
+
+@eqx.filter_jit
+def _screened(params: Params, series: SensorSeries) -> tuple[SensorSeries, Array]:
     dtype = params.log_q.dtype
     gyro, hall_v, codes = screened_series(params, jnp.asarray(series.dt, dtype),
                                           jnp.asarray(series.gyro, dtype),

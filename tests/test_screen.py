@@ -235,3 +235,20 @@ def test_a_bias_step_is_put_on_one_gyro_of_the_pair():
     found = kk.fault_stretches(bad.t, est.faults, NAMES)
     assert [(f["column"], f["kind"]) for f in found] == [("gyro3_x", "bias_step")], found
     assert 25.0 <= found[0]["from_s"] < 26.0
+
+
+def test_a_recording_screened_once_is_not_judged_again(disconnected):
+    """``kk.screened`` once, then any number of filter calls on the screened series: the same
+    estimates as screening in every call, and the codes come from the one screening."""
+    bad = disconnected[1]
+    params = Params.paper_defaults(ROBOT, bad.hall_models)
+    raw = kk.session_series(bad, jnp.float32)
+    series, codes = kk.screened(params, raw)
+    assert series.screened and int((np.asarray(codes) == RAILED).sum()) > 0
+    again, none = kk.screened(params, series)
+    assert again is series and none is None
+    _, ref = kk.run_filter(params, raw, "kckf", path="sequential")
+    _, est = kk.run_filter(params, series, "kckf", path="sequential")
+    np.testing.assert_array_equal(np.asarray(est.angles), np.asarray(ref.angles))
+    np.testing.assert_array_equal(np.asarray(ref.faults), np.asarray(codes))
+    assert est.faults is None
