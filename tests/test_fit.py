@@ -331,9 +331,10 @@ def test_two_processes_fit_as_one(tmp_path):
 
 def test_two_kckf_fit_processes_fit_as_one(tmp_path):
     """The documented multi-host launch (docs/fitting.md), on loopback: two ``kckf fit``
-    processes with ``--coordinator``, each given its own session, fit as one (process 0
-    writes the file) the parameters one process writes from both sessions (float32: the trials' sums are grouped differently, and
-    three Adam steps carry that rounding into up to 4.4e-4 of a log-parameter here)."""
+    processes with ``--coordinator``, each given its own session, fit as one: process 0
+    writes the parameters one process writes from both sessions (float32: the trials' sums
+    are grouped differently, and three Adam steps carry that rounding into up to 4.4e-4 of a
+    log-parameter here)."""
     from helpers import default_compile_env
 
     robot = Robot.from_spec("x,y,x,y")
