@@ -215,7 +215,8 @@ def fused_pairs(
 
 
 def block_inputs(
-    params: Params, st, gyro_hold: Float[Array, " G"], inputs: SensorSeries
+    params: Params, st, gyro_hold: Float[Array, " G"], inputs: SensorSeries,
+    in_loop: bool = True,
 ) -> tuple[Float[Array, ""], BlockRates, tuple[BlockRates, BlockRates, BlockRates], BlockHall,
            BlockHall, BlockValid]:
     """One row's inputs laid out by axis block (``_model.Structure``).
@@ -229,17 +230,18 @@ def block_inputs(
     dtype = gyro_hold.dtype
     dt = inputs.dt.astype(dtype)
     plus, minus = robot.rate_pairs
-    rates = block_gather(st, static_take(gyro_hold, plus) - static_take(gyro_hold, minus))
-    noise = tuple(block_gather(st, x)
+    take = static_take if in_loop else _gather
+    rates = block_gather(st, take(gyro_hold, plus) - take(gyro_hold, minus), in_loop)
+    noise = tuple(block_gather(st, x, in_loop)
                   for x in q_blocks(params.q, params.angle_rw, params.bias_rw, dt))
     angle, r, valid = hall_measurements(params, inputs.hall_v.astype(dtype))
     h, rh, ok = fused_pairs(angle, r, valid)
     ji = st.joint_index
     pad = ji < 0
     at = np.maximum(ji, 0)
-    hb = jnp.where(pad, 0.0, static_take(h, at))
-    rb = jnp.where(pad, 1.0, static_take(rh, at))
-    vb = jnp.where(pad, False, static_take(ok, at))
+    hb = jnp.where(pad, 0.0, take(h, at))
+    rb = jnp.where(pad, 1.0, take(rh, at))
+    vb = jnp.where(pad, False, take(ok, at))
     return dt, rates, noise, hb, rb, vb
 
 
@@ -301,8 +303,16 @@ def block_update(
     return block_step(st, z, P, rates, alpha, beta, gamma, hb, rb, vb, dt)[:2]
 
 
-def block_estimate(st, z: BlockState, P: BlockCov) -> Estimate:
-    """Angles, their standard deviations and biases from the block states, in angle order."""
+def _gather(x, idx, axis: int = 0):
+    """``static_take`` as a gather: for every row at once outside a loop, where it costs less
+    to compile and run (``in_loop=False``; the steady and parallel paths, whose loops hold
+    matrix products and are never one kernel anyway)."""
+    return jnp.take(x, np.asarray(idx), axis=axis)
+
+
+def block_estimate(st, z: BlockState, P: BlockCov, in_loop: bool = True) -> Estimate:
+    """Angles, their standard deviations and biases from the block states, in angle order
+    (``in_loop``: as ``block_inputs``)."""
     T = jnp.asarray(st.T, z.dtype)
     m1 = st.m + 1
     xb = jnp.sum(T[None] * z[:, None, :], axis=2)  # (P, 2m + 2): the paper's x per block
@@ -311,9 +321,10 @@ def block_estimate(st, z: BlockState, P: BlockCov) -> Estimate:
     var = jnp.sum(TaP * Ta[None], axis=2)
     bo, so = np.asarray(st.block_of), np.asarray(st.slot_of)
     ncol = xb.shape[1]
-    angle = static_take(xb.reshape(-1), bo * ncol + so)
-    bias = static_take(xb.reshape(-1), bo * ncol + m1 + so)
-    std = jnp.sqrt(jnp.maximum(static_take(var.reshape(-1), bo * var.shape[1] + so), 0.0))
+    take = static_take if in_loop else _gather
+    angle = take(xb.reshape(-1), bo * ncol + so)
+    bias = take(xb.reshape(-1), bo * ncol + m1 + so)
+    std = jnp.sqrt(jnp.maximum(take(var.reshape(-1), bo * var.shape[1] + so), 0.0))
     return Estimate(angle, std, bias)
 
 

@@ -105,7 +105,8 @@ def series_inputs(params: Params, st: Structure, series: SensorSeries,
     held gyro rates after every row."""
     held = held_gyro(series.gyro, hold0)
     prev_hold = jnp.concatenate([hold0[None], held[:-1]], axis=0)
-    return jax.vmap(lambda g, row: block_inputs(params, st, g, row))(prev_hold, series), held
+    rows = jax.vmap(lambda g, row: block_inputs(params, st, g, row, in_loop=False))
+    return rows(prev_hold, series), held
 
 
 def reading_maps(params: Params, st: Structure, dtype
@@ -176,10 +177,11 @@ def converged_map(params: Params, method: str, P: BlockCov, dt: Float[Array, ""]
     robot = params.robot
     inputs = SensorSeries(dt.astype(dtype), jnp.zeros(3 * robot.n_links, dtype),
                           jnp.zeros(robot.n_hall, dtype))
-    row = block_inputs(params, st, jnp.zeros(3 * robot.n_links, dtype), inputs)
+    row = block_inputs(params, st, jnp.zeros(3 * robot.n_links, dtype), inputs,
+                       in_loop=False)
     P_new, A, Gr, Gh = step_maps(params, st, P, row)
     Wg, Wh = input_weights(Gr, Gh, *reading_maps(params, st, dtype))
-    std = block_estimate(st, jnp.zeros(P.shape[:2], dtype), P_new).angle_std
+    std = block_estimate(st, jnp.zeros(P.shape[:2], dtype), P_new, in_loop=False).angle_std
     return P_new, A, Wg, Wh, std
 
 

@@ -54,7 +54,7 @@ def _one_trial(params: Params, series: SensorSeries, method: str, state: FilterS
     c = (jnp.einsum("kpaj,kpj->kpa", Grs, rates) + jnp.einsum("kpaj,kpj->kpa", Ghs, hb))
     c = c.at[0].add(jnp.einsum("pab,pb->pa", As[0], state.z))
     z = _compose(As, c)
-    est = jax.vmap(lambda zk, Pk: block_estimate(st, zk, Pk))(z, Ps)
+    est = jax.vmap(lambda zk, Pk: block_estimate(st, zk, Pk, False))(z, Ps)
     return FilterState(z[-1], P_last, held[-1]), dataclasses.replace(est, skipped=~ok)
 
 

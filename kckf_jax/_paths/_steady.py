@@ -161,8 +161,8 @@ class Steady(AbstractPath):
         (Ps, As, Grs, Ghs, ok), (P_ss, A, Gr, Gh), _ = self.head_and_map(params, st, series,
                                                                          state)
         zeros = jnp.zeros(P_ss.shape[:2], dtype)
-        std_head = jax.vmap(lambda Pk: block_estimate(st, zeros, Pk).angle_std)(Ps)
-        std_tail = block_estimate(st, zeros, P_ss).angle_std
+        std_head = jax.vmap(lambda Pk: block_estimate(st, zeros, Pk, False).angle_std)(Ps)
+        std_tail = block_estimate(st, zeros, P_ss, False).angle_std
         angles, bias, z = self._mean(params, st, series, state.z, state.gyro_hold,
                                      (A, Gr, Gh), (As, Grs, Ghs))
         std = jnp.concatenate([std_head, jnp.broadcast_to(std_tail, (T - n_head,)

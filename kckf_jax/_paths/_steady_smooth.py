@@ -161,7 +161,7 @@ class SteadySmoother(eqx.Module):
         zeros = jnp.zeros(P_ss.shape[:2], dtype)
 
         def std_of(P):
-            return block_estimate(st, zeros, P).angle_std
+            return block_estimate(st, zeros, P, False).angle_std
 
         std_head = jax.vmap(lambda Ps_b: jax.vmap(std_of)(Ps_b))(Ps_head)  # (B, n_head, K)
         std_tail = jax.vmap(std_of)(P_tail[::-1])
