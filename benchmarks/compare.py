@@ -60,16 +60,14 @@ from kckf_jax import (  # noqa: E402
     StreamingFilter,
     enable_cpu_loops,  # noqa: E402
     filter_batch,
-    full_state,
     hall_angle,
     init_state,
     loss_fn,
     make_batch,
-    paper_matrices,
     run_filter,
     simulate,
-    structure,
 )
+from kckf_jax._model import full_state, paper_matrices, structure  # noqa: E402 (internals)
 
 enable_cpu_loops()  # XLA's CPU loops as one kernel each, before any computation
 

@@ -47,6 +47,7 @@ from _machine import machine, require_peers  # noqa: E402
 
 import kckf_jax as kk  # noqa: E402
 from kckf_jax import enable_cpu_loops  # noqa: E402
+from kckf_jax._model import full_state, paper_matrices, structure  # noqa: E402 (internals)
 
 enable_cpu_loops()  # XLA's CPU loops as one kernel each, before any computation
 
@@ -165,7 +166,7 @@ def peer_rows(params, s):
     p64 = params.astype(jnp.float64)
     dt = s.dt()
     T = s.n_steps
-    base = kk.paper_matrices(robot, p64, ts=1.0)
+    base = paper_matrices(robot, p64, ts=1.0)
     A1 = base.A - np.eye(base.A.shape[0])  # A = I + ts A1
     N = base.A.shape[0]
     F = np.eye(N)[None] + dt[:, None, None] * A1[None]
@@ -197,9 +198,9 @@ def peer_rows(params, s):
         bad = ~np.isfinite(held[t])
         held[t, bad] = held[t - 1, bad] if t else 0.0
     u = np.concatenate([np.zeros((1, held.shape[1])), held[:-1]], axis=0)
-    st = kk.structure(robot, "kckf")
+    st = structure(robot, "kckf")
     P0b = np.asarray(kk.init_state(p64).P)
-    _, P0 = kk.full_state(st, np.zeros(P0b.shape[:2]), P0b)
+    _, P0 = full_state(st, np.zeros(P0b.shape[:2]), P0b)
     return dict(F=F, B=B, Q=Q, H=H, R=R, y=y, u=u, present=present, x0=np.zeros(N), P0=P0)
 
 

@@ -6,13 +6,14 @@ The public API (everything else lives in private modules; docs/architecture.md m
   range of the readings), ``ParamsFileError``, ``load_params``, ``save_params``,
   ``params_to_dict``;
 * the filter's kernel: ``SensorSeries``, ``FilterState``, ``Estimate``, ``METHODS``,
-  ``init_state``, ``step``, ``scan_filter``, ``pad_series``, ``full_state``, ``structure``
-  (and its ``Structure``), ``paper_matrices``;
+  ``init_state``, ``step``, ``scan_filter``, ``pad_series`` (the state's block layout and
+  the paper's matrices are internals: ``kckf_jax._model``, which benchmarks and tests read);
 * running it: ``run_filter`` (one recording), ``filter_batch`` (padded trials),
   ``filter_sessions`` (recorded sessions), ``session_series``, ``session_params``,
   ``screened`` (the readings as the filter uses them, and why not: once for many runs),
   ``GapPolicy`` (what happens across a gap in the rows), ``choose_path`` and ``PathChoice``
-  (which path runs, and why), ``PathRun`` (what a path computed);
+  (which path runs, and why), ``PathRun`` (what a path computed), ``SmootherLayout`` (how
+  the smoother lays out a batch for a path);
 * offline analysis: ``smooth``, ``smooth_batch`` (the fixed-interval RTS smoother; its steady
   layout ``SteadySmoother``), ``hall_nll`` (the Hall readings' negative log-likelihood),
   ``consistency_figures`` (NIS and NEES against a consistent filter's interval);
@@ -36,11 +37,12 @@ The public API (everything else lives in private modules; docs/architecture.md m
 * analysis: ``observability_ranks``;
 * the one process-wide setting it offers, made only when asked (XLA's CPU while loops
   compiled as one kernel each; importing kckf_jax changes nothing in the process):
-  ``enable_cpu_loops``, and ``cpu_loops`` (what it did, measured).
+  ``enable_cpu_loops``, and ``cpu_loops`` (what it did, measured; a ``CpuLoops``).
 
 The other papers' systems are in ``kckf_jax.filters``.
 """
 
+from ._cpu_loops import CpuLoops as CpuLoops
 from ._cpu_loops import cpu_loops as cpu_loops
 from ._cpu_loops import enable_cpu_loops as enable_cpu_loops
 from ._demo import sample_data_dir as sample_data_dir
@@ -68,10 +70,6 @@ from ._likelihood import hall_nll as hall_nll
 from ._limits import SensorLimits as SensorLimits
 from ._metrics import fused_hall_error as fused_hall_error
 from ._metrics import rmse_table as rmse_table
-from ._model import Structure as Structure
-from ._model import full_state as full_state
-from ._model import paper_matrices as paper_matrices
-from ._model import structure as structure
 from ._observability import observability_ranks as observability_ranks
 from ._params import Params as Params
 from ._params import ParamsFileError as ParamsFileError
@@ -86,6 +84,7 @@ from ._paths import PathChoice as PathChoice
 from ._paths import PathRun as PathRun
 from ._paths import Segments as Segments
 from ._paths import Sequential as Sequential
+from ._paths import SmootherLayout as SmootherLayout
 from ._paths import Steady as Steady
 from ._paths._steady_smooth import SteadySmoother as SteadySmoother
 from ._report import consistency_figures as consistency_figures

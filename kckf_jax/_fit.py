@@ -341,9 +341,9 @@ class FitConfig:
         if not (math.isfinite(self.nll_weight) and self.nll_weight > 0):
             raise ValueError(f"FitConfig.nll_weight: expected a positive number, got "
                              f"{self.nll_weight!r}")
-        self.train_config()  # the loop's own checks
+        self._train_config()  # the loop's own checks
 
-    def train_config(self) -> TrainConfig:
+    def _train_config(self) -> TrainConfig:
         """The settings of the one training loop."""
         return TrainConfig(
             steps=self.steps, learning_rate=self.learning_rate, clip_norm=self.clip_norm,
@@ -466,7 +466,7 @@ def fit(
             np.frombuffer(identity["fingerprint"].encode(), np.uint8))
         identity["fingerprint"] = fingerprint_of(np.asarray(fps).tobytes())
     n_trials = len(trial_sessions(sessions, gaps))
-    result = train(loss, params, batch, n_trials, config.train_config(), val_batch=val,
+    result = train(loss, params, batch, n_trials, config._train_config(), val_batch=val,
                    val_loss=val_loss, checkpoint=checkpoint, resume=resume, identity=identity,
                    callback=callback, place=lambda x: jax.device_put(x, replicated))
     result.seconds = time.perf_counter() - t0

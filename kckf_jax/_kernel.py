@@ -39,6 +39,7 @@ coordinates of ``_model.structure``. There is no matrix inverse or LAPACK call i
 from __future__ import annotations
 
 import dataclasses
+from typing import NamedTuple
 
 import equinox as eqx
 import jax
@@ -52,6 +53,7 @@ from ._health import screened_series
 from ._kalman import coordinate_update, symmetrise
 from ._model import (
     FILTER_METHODS,
+    ProcessNoise,
     block_gather,
     initial_covariance,
     predicted_moments,
@@ -214,26 +216,42 @@ def fused_pairs(
     return h, 1.0 / Ws, ok
 
 
-def block_inputs(
-    params: Params, st, gyro_hold: Float[Array, " G"], inputs: SensorSeries,
-    in_loop: bool = True,
-) -> tuple[Float[Array, ""], BlockRates, tuple[BlockRates, BlockRates, BlockRates], BlockHall,
-           BlockHall, BlockValid]:
-    """One row's inputs laid out by axis block (``_model.Structure``).
+class BlockInputs(NamedTuple):
+    """One row's inputs laid out by axis block (``block_inputs``; any leading axes where
+    every row is laid out at once).
 
-    Returns ``(dt, rates, noise, hb, rb, vb)``: the time step; the rates of the previous row
-    (``Nb x m1``, Eqs. 2, 9, 10); the process noise ``(alpha, beta, gamma)`` (Eq. 13,
-    each ``Nb x m1``); and each block joint's fused Hall reading (rad), its variance and
-    whether it exists (``Nb x m``, Eqs. 1, 5, 8, 20).
+    Attributes:
+        dt: the time step (s).
+        rates: the rates of the previous row (``Nb x m1``, Eqs. 2, 9, 10).
+        noise: the process noise (Eq. 13), each term ``Nb x m1``.
+        hb: each block joint's fused Hall reading (rad, ``Nb x m``; Eqs. 1, 5, 8, 20).
+        rb: its variance.
+        vb: whether it exists.
     """
+
+    dt: Float[Array, ""]
+    rates: BlockRates
+    noise: ProcessNoise
+    hb: BlockHall
+    rb: BlockHall
+    vb: BlockValid
+
+
+def block_inputs(params: Params, st, gyro_hold: Float[Array, " G"], inputs: SensorSeries,
+                 in_loop: bool = True) -> BlockInputs:
+    """One row's inputs laid out by axis block (``_model.Structure``). ``in_loop``: whether
+    the row is taken inside a loop (``_model.static_take``)."""
     robot = params.robot
     dtype = gyro_hold.dtype
     dt = inputs.dt.astype(dtype)
     plus, minus = robot.rate_pairs
-    take = static_take if in_loop else _gather
+
+    def take(x, idx):
+        return static_take(x, idx, in_loop=in_loop)
+
     rates = block_gather(st, take(gyro_hold, plus) - take(gyro_hold, minus), in_loop)
-    noise = tuple(block_gather(st, x, in_loop)
-                  for x in q_blocks(params.q, params.angle_rw, params.bias_rw, dt))
+    noise = ProcessNoise(*(block_gather(st, x, in_loop)
+                           for x in q_blocks(params.q, params.angle_rw, params.bias_rw, dt)))
     angle, r, valid = hall_measurements(params, inputs.hall_v.astype(dtype))
     h, rh, ok = fused_pairs(angle, r, valid)
     ji = st.joint_index
@@ -242,7 +260,7 @@ def block_inputs(
     hb = jnp.where(pad, 0.0, take(h, at))
     rb = jnp.where(pad, 1.0, take(rh, at))
     vb = jnp.where(pad, False, take(ok, at))
-    return dt, rates, noise, hb, rb, vb
+    return BlockInputs(dt, rates, noise, hb, rb, vb)
 
 
 def block_step(
@@ -303,13 +321,6 @@ def block_update(
     return block_step(st, z, P, rates, alpha, beta, gamma, hb, rb, vb, dt)[:2]
 
 
-def _gather(x, idx, axis: int = 0):
-    """``static_take`` as a gather: for every row at once outside a loop, where it costs less
-    to compile and run (``in_loop=False``; the steady and parallel paths, whose loops hold
-    matrix products and are never one kernel anyway)."""
-    return jnp.take(x, np.asarray(idx), axis=axis)
-
-
 def block_estimate(st, z: BlockState, P: BlockCov, in_loop: bool = True) -> Estimate:
     """Angles, their standard deviations and biases from the block states, in angle order
     (``in_loop``: as ``block_inputs``)."""
@@ -321,7 +332,10 @@ def block_estimate(st, z: BlockState, P: BlockCov, in_loop: bool = True) -> Esti
     var = jnp.sum(TaP * Ta[None], axis=2)
     bo, so = np.asarray(st.block_of), np.asarray(st.slot_of)
     ncol = xb.shape[1]
-    take = static_take if in_loop else _gather
+
+    def take(x, idx):
+        return static_take(x, idx, in_loop=in_loop)
+
     angle = take(xb.reshape(-1), bo * ncol + so)
     bias = take(xb.reshape(-1), bo * ncol + m1 + so)
     std = jnp.sqrt(jnp.maximum(take(var.reshape(-1), bo * var.shape[1] + so), 0.0))

@@ -35,7 +35,7 @@ from ._kernel import SensorSeries, hall_measurements, init_states, plausible
 from ._model import structure
 from ._params import Params
 from ._paths import AbstractPath, as_path
-from ._paths._lanes import lane_scan
+from ._paths._lanes import LaneState, lane_innovations_scan, lane_inputs
 from ._smooth import filter_moments
 
 
@@ -66,15 +66,17 @@ def innovations(params: Params, series: SensorSeries, method: str = "kckf"):
 def lane_innovations(params: Params, batch: SensorSeries, method: str = "kckf",
                      remat_chunk: int | None = None):
     """Every fused Hall innovation of a batch (``B T``) from the lanes path's scan:
-    ``(nu, s, valid)``, each ``T x m x Nb x B`` (``innovations``' terms, another layout)."""
+    ``LaneInnovations`` ``(nu, s, valid)``, each ``T x m x Nb x B`` (``innovations``' terms,
+    another layout)."""
     st = structure(params.robot, method)
     state = init_states(params, method, jnp.shape(batch.dt)[0])
     dtype = state.z.dtype
     series = plausible(params, jax.tree_util.tree_map(lambda x: jnp.asarray(x).astype(dtype),
                                                       batch))
-    *_, rows = lane_scan(params, st, state.z, state.P, state.gyro_hold,
-                         series.dt, series.gyro, series.hall_v, remat_chunk, innovations=True)
-    return rows
+    run = lane_innovations_scan(params, st, LaneState(state.z, state.P, state.gyro_hold),
+                                lane_inputs(params, st, series.dt, series.gyro, series.hall_v),
+                                remat_chunk)
+    return run.rows
 
 
 def hall_nll(params: Params, series: SensorSeries, method: str = "kckf",

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import functools
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -44,7 +45,17 @@ class PaperMatrices:
     R: np.ndarray  # (M, M)  Eq. 20 (Hall block; the constraint rows have zero noise)
 
 
-def q_blocks(q, angle_rw, bias_rw, ts):
+class ProcessNoise(NamedTuple):
+    """Per angle coordinate, the discrete process noise of its ``(angle, bias)`` pair: the
+    angle's variance ``alpha``, the covariance ``beta`` and the bias's variance ``gamma`` (any
+    leading axes; laid out by block where a step takes them)."""
+
+    alpha: Array
+    beta: Array
+    gamma: Array
+
+
+def q_blocks(q, angle_rw, bias_rw, ts) -> ProcessNoise:
     """Per-coordinate ``(angle var, cross cov, bias var)`` of the discrete process noise.
 
     Eq. 13 scaled by ``q`` (``[[ts^4/4, ts^3/2], [ts^3/2, ts^2]]``), plus an angle random walk
@@ -53,7 +64,7 @@ def q_blocks(q, angle_rw, bias_rw, ts):
     alpha = q * ts**4 / 4 + angle_rw**2 * ts
     beta = q * ts**3 / 2
     gamma = q * ts**2 + bias_rw**2 * ts
-    return alpha, beta, gamma
+    return ProcessNoise(alpha, beta, gamma)
 
 
 def paper_matrices(robot: Robot, params: Params | None = None, ts: float = 0.01) -> PaperMatrices:
@@ -208,14 +219,24 @@ def structure(robot: Robot, method: str) -> Structure:
     )
 
 
-def static_take(x: Array, idx, axis: int = 0) -> Array:
+def static_take(x: Array, idx, axis: int = 0, in_loop: bool = True) -> Array:
     """``x`` indexed along ``axis`` by a constant index array ``idx`` (any shape): the result
-    has ``idx``'s shape in place of that axis. Written as a select against a constant mask and
-    a sum (a NaN elsewhere in ``x`` stays out), not a gather: XLA's CPU compiler (jax 0.12)
-    keeps a gather with constant indices, its transpose is a scatter, and a loop holding a
-    scatter is not compiled as one kernel (``_cpu_loops``: the sequential path's gradient ran
-    1.5x slower); slices and a concatenation instead cost the forward step 10-15 %."""
+    has ``idx``'s shape in place of that axis. The one place that decides how constant indices
+    are taken:
+
+    * ``in_loop`` (a step inside a ``lax.scan``): a select against a constant mask and a sum
+      (a NaN elsewhere in ``x`` stays out), not a gather: XLA's CPU compiler (jax 0.12) keeps
+      a gather with constant indices, its transpose is a scatter, and a loop holding a scatter
+      is not compiled as one kernel (``_cpu_loops``: the sequential path's gradient ran 1.5x
+      slower); slices and a concatenation instead cost the forward step 10-15 %;
+    * ``in_loop=False`` (every row at once, outside a loop: the steady, parallel and lanes
+      layouts): a gather, which costs less there than the mask (a ``(K, n)`` select per row)
+      and compiles sooner (the suite's filter, smoother and fault tests: 103 s with the mask
+      everywhere, 93 s with gathers outside loops), its transpose outside any loop too.
+    """
     idx = np.asarray(idx, dtype=np.int64)
+    if not in_loop:
+        return jnp.take(x, idx, axis=axis)
     axis = axis % x.ndim
     n = x.shape[axis]
     mask = idx.reshape(-1)[:, None] == np.arange(n)[None, :]  # (K, n), constant
@@ -233,12 +254,11 @@ def static_take(x: Array, idx, axis: int = 0) -> Array:
 def block_gather(st: Structure, values: Float[Array, " K"], in_loop: bool = True
                  ) -> Float[Array, "P m1"]:
     """Per-angle-coordinate values (K,) laid out by block (P, m + 1); padding gets 0.
-    ``in_loop=False`` for every row at once outside a loop: a gather there costs less than
-    ``static_take``'s mask (a (K, n) select per row), and its transpose stays out of loops."""
+    ``in_loop``: as ``static_take``."""
     idx = st.angle_index
     ext = jnp.concatenate([values, jnp.zeros(1, values.dtype)])
     at = np.where(idx >= 0, idx, values.shape[0])
-    return static_take(ext, at) if in_loop else ext[at]
+    return static_take(ext, at, in_loop=in_loop)
 
 
 def predicted_moments(

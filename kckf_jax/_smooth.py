@@ -39,7 +39,7 @@ from ._kernel import (
 )
 from ._model import FILTER_METHODS, structure
 from ._params import Params
-from ._paths import AbstractPath, as_path, is_traced
+from ._paths import AbstractPath, SmootherLayout, as_path, is_traced
 from ._paths._lanes_smooth import lane_smooth
 from ._paths._steady_smooth import SteadySmoother
 from ._rts import rts_rows
@@ -82,7 +82,7 @@ def _smoothed(params: Params, series: SensorSeries, method: str, state: FilterSt
 
 
 def smooth(params: Params, series: SensorSeries, method: str = "kckf",
-           state: FilterState | None = None, path: str = "auto") -> Estimate:
+           state: FilterState | None = None, path: str | AbstractPath = "auto") -> Estimate:
     """The fixed-interval (RTS) smoothed estimates of one recording (``run_filter``'s
     arguments; ``method`` ``"kckf"`` or ``"kf"``): each row's angles, their standard
     deviations and biases given every reading of the recording, before and after it.
@@ -98,9 +98,9 @@ def smooth(params: Params, series: SensorSeries, method: str = "kckf",
     _check(method)
     if state is None and path != "sequential":
         batch = jax.tree_util.tree_map(lambda x: jnp.asarray(x)[None], series)
-        name = _smooth_path(params, batch, method, path)
-        if name != "sequential":
-            est = _smooth_on(name, params, batch, method)
+        layout = _smooth_path(params, batch, method, path)
+        if layout.name != "sequential":
+            est = _smooth_on(layout, params, batch, method)
             return dataclasses.replace(est, angles=est.angles[0], angle_std=est.angle_std[0],
                                        bias=est.bias[0], skipped=est.skipped[0])
     elif state is not None and path not in ("auto", "sequential"):
@@ -132,24 +132,26 @@ def smooth_batch(params: Params, series: SensorSeries, method: str = "kckf",
     return _smooth_on(_smooth_path(params, series, method, path), params, series, method)
 
 
-def _smooth_on(name: str, params: Params, series: SensorSeries, method: str) -> Estimate:
-    """The batch smoothed on the path ``name`` (``_smooth_path``'s choice), labelled."""
-    if name == "steady":
-        smoother = SteadySmoother()
-        why = None if is_traced(params, series) else smoother.applies(params, series, method)
-        if why is not None:
-            raise ValueError(f"smooth: the steady path does not apply: {why}")
+def _smooth_on(layout: SmootherLayout, params: Params, series: SensorSeries, method: str
+               ) -> Estimate:
+    """The batch smoothed in ``layout`` (the path's ``smoother_layout``), labelled."""
+    if layout.name == "steady":
+        smoother = SteadySmoother(steady=layout.steady)
+        if not layout.checked and not is_traced(params, series):
+            why = smoother.applies(params, series, method)
+            if why is not None:
+                raise ValueError(f"smooth: the steady path does not apply: {why}")
         est = _smooth_steady(smoother, params, series, method)
-    elif name == "lanes":
+    elif layout.name == "lanes":
         est = _smooth_lanes(params, series, method)
     else:
         est = _smooth_many(params, series, method)
-    label = "smoothed" if name == "sequential" else f"smoothed:{name}"
+    label = "smoothed" if layout.name == "sequential" else f"smoothed:{layout.name}"
     return dataclasses.replace(est, path=label, names=params.robot.angle_names)
 
 
 def _smooth_path(params: Params, series: SensorSeries, method: str,
-                 path: str | AbstractPath) -> str:
+                 path: str | AbstractPath) -> SmootherLayout:
     """The smoother's layout for a batch: the path's answer (``smoother_layout``)."""
     if isinstance(path, str) and path not in SMOOTH_PATHS:
         raise ValueError(f"smooth: unknown path {path!r}; expected one of "

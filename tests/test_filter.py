@@ -15,13 +15,12 @@ from kckf_jax import (
     Params,
     Robot,
     filter_batch,
-    full_state,
     init_state,
     pad_series,
     run_filter,
     step,
-    structure,
 )
+from kckf_jax._model import full_state, structure
 
 
 @pytest.mark.parametrize("seed", range(6))

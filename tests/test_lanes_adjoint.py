@@ -140,7 +140,7 @@ def test_float32_gradient_is_as_accurate_as_the_automatic_one():
 
 @pytest.mark.parametrize("method", ["kckf", "kf"])
 def test_likelihood_gradient_equals_the_sequential_one_float64(method):
-    """The likelihood's innovations (``lane_scan(innovations=True)``) take the same reverse
+    """The likelihood's innovations (``lane_innovations_scan``) take the same reverse
     pass, with the cotangents of every innovation and its variance."""
     params, batch = recorded_like("x,y,x,y", overflow=False)
     grad = eqx.filter_jit(eqx.filter_value_and_grad(

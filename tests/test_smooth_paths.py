@@ -43,8 +43,8 @@ def test_lanes_smoother_equals_sequential_and_numpy(method):
     ref = reference_smoother(joints_of(robot), *recs[0], reference_params(params), method)
     np.testing.assert_allclose(lanes.angles[0, :60], ref["angles"], atol=1e-8, rtol=0)
     # Auto takes lanes from Lanes.min_trials trials on, as the filter does.
-    assert _smooth_path(params, pad_series(series * 4), method, "auto") == "lanes"
-    assert _smooth_path(params, batch, method, "auto") == "sequential"
+    assert _smooth_path(params, pad_series(series * 4), method, "auto").name == "lanes"
+    assert _smooth_path(params, batch, method, "auto").name == "sequential"
 
 
 def test_lanes_smoother_gradient_equals_sequential():
@@ -127,3 +127,29 @@ def test_steady_smoother_says_why_it_does_not_apply():
     assert smooth(params, jittered).path == "smoothed"
     with pytest.raises(ValueError, match="unknown path"):
         smooth_batch(params, jax.tree_util.tree_map(lambda x: x[None], one), path="fast")
+
+
+def test_the_policy_lays_out_the_smoother_with_its_own_constants_and_checks_once(monkeypatch):
+    """``Auto``'s ``Steady`` constants reach the steady smoother, whose check ``Auto`` ran
+    (once: the smoother does not run it again); an explicit ``Steady`` is checked by the
+    smoother."""
+    from kckf_jax import Auto, Steady
+    from kckf_jax._paths._steady_smooth import SteadySmoother
+
+    robot = Robot.from_spec("x,y")
+    params = Params.paper_defaults(robot, dtype=jnp.float64)
+    one = jax.tree_util.tree_map(lambda x: x[None], _regular(robot, 1, 5000))
+    mine = Steady(head_rows_float64=3000)
+    layout = _smooth_path(params, one, "kckf", Auto(steady=mine))
+    assert (layout.name, layout.steady, layout.checked) == ("steady", mine, True)
+    explicit = _smooth_path(params, one, "kckf", mine)
+    assert (explicit.name, explicit.steady, explicit.checked) == ("steady", mine, False)
+    calls, seen = [], []
+    applies, run = SteadySmoother.applies, SteadySmoother.run
+    monkeypatch.setattr(SteadySmoother, "applies",
+                        lambda self, *a, **k: calls.append(1) or applies(self, *a, **k))
+    monkeypatch.setattr(SteadySmoother, "run",
+                        lambda self, *a, **k: seen.append(self.steady) or run(self, *a, **k))
+    est = smooth_batch(params, one, path=Auto(steady=mine))
+    assert est.path == "smoothed:steady" and len(calls) == 1 and seen == [mine]
+    _close(est, smooth_batch(params, one, path="sequential"), 1e-9)

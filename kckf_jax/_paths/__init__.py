@@ -25,6 +25,7 @@ from ._base import STEP_TOL_S as STEP_TOL_S
 from ._base import AbstractPath as AbstractPath
 from ._base import PathChoice as PathChoice
 from ._base import PathRun as PathRun
+from ._base import SmootherLayout as SmootherLayout
 from ._base import is_traced as is_traced
 from ._base import readings_present as readings_present
 from ._base import regular_step as regular_step

@@ -10,6 +10,8 @@ the filter), and ``covariance_phase`` strings those rows together over a recordi
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -17,6 +19,7 @@ from jaxtyping import Array, Bool, Float
 
 from .._custom_types import BlockCov, BlockMap, HallMap, RateMap
 from .._kernel import (
+    BlockInputs,
     SensorSeries,
     block_estimate,
     block_inputs,
@@ -27,14 +30,32 @@ from .._kernel import (
 from .._model import Structure, structure
 from .._params import Params
 
-RowInputs = tuple  # (dt, rates, (alpha, beta, gamma), hb, rb, vb), as ``block_inputs`` gives
+
+class StepMaps(NamedTuple):
+    """One row as an affine map of the mean, ``z_new = A z + Gr rates + Gh hb``, and the
+    covariance after it (``Nb x ...``; a leading row axis ``R`` where every row's are kept).
+
+    Attributes:
+        P: the covariance after the row.
+        A: the map of the block state.
+        Gr: the map of the block rates.
+        Gh: the map of the fused Hall readings.
+        ok: whether the row was computed (``covariance_phase``; a skipped row's maps are the
+            identity and its covariance the one before), or ``None`` where not judged.
+    """
+
+    P: BlockCov
+    A: BlockMap
+    Gr: RateMap
+    Gh: HallMap
+    ok: Bool[Array, "*R"] | None = None
 
 
-def step_maps(params: Params, st: Structure, P: Float[Array, "Nb Nz Nz"], row: RowInputs
-              ) -> tuple[Float[Array, "Nb Nz Nz"], BlockMap, RateMap, HallMap]:
-    """One covariance step for every block, and the affine maps of the mean: returns
-    ``(P_new, A, Gr, Gh)`` with ``z_new = A z + Gr rates + Gh hb`` (``Nb x Nz x ...``)."""
-    dt, _, noise, _, rb, vb = row
+def step_maps(params: Params, st: Structure, P: Float[Array, "Nb Nz Nz"], row: BlockInputs
+              ) -> StepMaps:
+    """One covariance step for every block, and the affine maps of the mean (``Nb x Nz x
+    ...``)."""
+    dt, noise, rb, vb = row.dt, row.noise, row.rb, row.vb
     nz, m1, m = st.n_z, st.m + 1, st.m
 
     def one_block(P, alpha, beta, gamma, rb, vb):
@@ -51,18 +72,14 @@ def step_maps(params: Params, st: Structure, P: Float[Array, "Nb Nz Nz"], row: R
             eye[:, :nz], eye[:, nz:nz + m1], eye[:, nz + m1:])  # (nz + m1 + m, nz)
         return P_new, cols[:nz].T, cols[nz:nz + m1].T, cols[nz + m1:].T
 
-    return jax.vmap(one_block)(P, *noise, rb, vb)
+    return StepMaps(*jax.vmap(one_block)(P, *noise, rb, vb))
 
 
 def covariance_phase(params: Params, st: Structure, P0: Float[Array, "Nb Nz Nz"],
-                     rows: RowInputs
-                     ) -> tuple[Float[Array, "Nb Nz Nz"],
-                                tuple[Float[Array, "R Nb Nz Nz"], Float[Array, "R Nb Nz Nz"],
-                                      Float[Array, "R Nb Nz m1"], Float[Array, "R Nb Nz m"],
-                                      Bool[Array, " R"]]]:
+                     rows: BlockInputs) -> tuple[Float[Array, "Nb Nz Nz"], StepMaps]:
     """``lax.scan`` of the covariance over ``rows`` (a leading row axis ``R``): the last
     covariance, and per row the covariance after it, its maps ``A, Gr, Gh`` and whether the
-    row was computed. A row whose covariance or maps are not finite is skipped as the
+    row was computed (``ok``). A row whose covariance or maps are not finite is skipped as the
     kernel's ``step`` skips it: the covariance is kept and the maps are the identity (``A =
     I``, ``Gr = Gh = 0``), so the mean is kept too."""
     # Rematerialised under reverse mode: storing every intermediate of every row as a
@@ -70,13 +87,13 @@ def covariance_phase(params: Params, st: Structure, P0: Float[Array, "Nb Nz Nz"]
     # phase, 2,048 rows in float32: bench 67 -> 35 ms, 3D 192 -> 151 ms).
     @jax.checkpoint
     def body(P, row):
-        P_new, A, Gr, Gh = step_maps(params, st, P, row)
+        P_new, A, Gr, Gh, _ = step_maps(params, st, P, row)
         ok = (jnp.isfinite(P_new).all() & jnp.isfinite(A).all() & jnp.isfinite(Gr).all()
               & jnp.isfinite(Gh).all())
         eye = jnp.broadcast_to(jnp.eye(st.n_z, dtype=P.dtype), A.shape)
         P_new = jnp.where(ok, P_new, P)
         A, Gr, Gh = jnp.where(ok, A, eye), jnp.where(ok, Gr, 0.0), jnp.where(ok, Gh, 0.0)
-        return P_new, (P_new, A, Gr, Gh, ok)
+        return P_new, StepMaps(P_new, A, Gr, Gh, ok)
 
     return jax.lax.scan(body, P0, rows)
 
@@ -100,7 +117,7 @@ def last_finite(gyro: Float[Array, "T G"], hold0: Float[Array, " G"]) -> Float[A
 
 
 def series_inputs(params: Params, st: Structure, series: SensorSeries,
-                  hold0: Float[Array, " G"]) -> tuple[RowInputs, Float[Array, "T G"]]:
+                  hold0: Float[Array, " G"]) -> tuple[BlockInputs, Float[Array, "T G"]]:
     """Every row's block inputs at once (``block_inputs`` with a leading row axis), and the
     held gyro rates after every row."""
     held = held_gyro(series.gyro, hold0)
@@ -160,17 +177,30 @@ def apply_blocks(A: Float[Array, "Nb Nz Nz"], z: Float[Array, "Nb Nz B"]
     return sum(A[:, :, j, None] * z[:, j, None, :] for j in range(A.shape[-1]))
 
 
-def converged_map(params: Params, method: str, P: BlockCov, dt: Float[Array, ""]
-                  ) -> tuple[BlockCov, Float[Array, "Nb Nz Nz"], Float[Array, "Gu Nb Nz"],
-                             Float[Array, "M Nb Nz"], Float[Array, " K"]]:
-    """The affine map of one regular packet (every reading present), for the streaming filter's
-    host path.
+class HostMap(NamedTuple):
+    """One regular packet as an affine map for the streaming filter's host path
+    (``converged_map``): ``z -> A z + g Wg + angle Wh``.
 
-    For the block covariance ``P`` before a step of ``dt``, returns ``(P_new, A, Wg, Wh,
-    std)``: the covariance after the step, the block map ``A``, the maps of the previous
-    packet's used gyro columns and of this packet's Hall angles, and the angles' standard
-    deviations. When ``P`` has converged, ``P_new = P`` and every later packet with the same
-    ``dt`` and every reading is the affine map ``z -> A z + g Wg + angle Wh``.
+    Attributes:
+        P: the covariance after the step.
+        A: the block map (``Nb Nz Nz``).
+        Wg: the map of the previous packet's used gyro columns (``Gu Nb Nz``).
+        Wh: the map of this packet's Hall angles (``M Nb Nz``).
+        std: the angles' standard deviations after the step (``K``).
+    """
+
+    P: BlockCov
+    A: Float[Array, "Nb Nz Nz"]
+    Wg: Float[Array, "Gu Nb Nz"]
+    Wh: Float[Array, "M Nb Nz"]
+    std: Float[Array, " K"]
+
+
+def converged_map(params: Params, method: str, P: BlockCov, dt: Float[Array, ""]) -> HostMap:
+    """The affine map of one regular packet (every reading present), for the streaming filter's
+    host path: for the block covariance ``P`` before a step of ``dt``. When ``P`` has
+    converged, ``HostMap.P = P`` and every later packet with the same ``dt`` and every reading
+    is the same map.
     """
     st = structure(params.robot, method)
     dtype = P.dtype
@@ -179,9 +209,9 @@ def converged_map(params: Params, method: str, P: BlockCov, dt: Float[Array, ""]
                           jnp.zeros(robot.n_hall, dtype))
     row = block_inputs(params, st, jnp.zeros(3 * robot.n_links, dtype), inputs,
                        in_loop=False)
-    P_new, A, Gr, Gh = step_maps(params, st, P, row)
+    P_new, A, Gr, Gh, _ = step_maps(params, st, P, row)
     Wg, Wh = input_weights(Gr, Gh, *reading_maps(params, st, dtype))
     std = block_estimate(st, jnp.zeros(P.shape[:2], dtype), P_new, in_loop=False).angle_std
-    return P_new, A, Wg, Wh, std
+    return HostMap(P_new, A, Wg, Wh, std)
 
 

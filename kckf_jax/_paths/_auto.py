@@ -10,7 +10,7 @@ import numpy as np
 
 from .._kernel import Estimate, FilterState, SensorSeries
 from .._params import Params
-from ._base import AbstractPath, PathChoice, PathRun, is_traced
+from ._base import AbstractPath, PathChoice, PathRun, SmootherLayout, is_traced
 from ._lanes import Lanes
 from ._parallel import Parallel
 from ._segments import Segments
@@ -79,13 +79,14 @@ class Auto(AbstractPath):
         """``"lanes"`` for ``lanes.min_trials`` trials or more, else ``"sequential"``."""
         return "lanes" if n_trials >= self.lanes.min_trials else "sequential"
 
-    def smoother_layout(self, params: Params, series: SensorSeries, method: str) -> str:
-        """``"steady"`` where the steady smoother applies (concrete inputs), else
-        ``batch_layout``'s."""
+    def smoother_layout(self, params: Params, series: SensorSeries, method: str
+                        ) -> SmootherLayout:
+        """``"steady"`` where the steady smoother applies (concrete inputs; checked here, once),
+        else ``batch_layout``'s."""
         if not is_traced(params, series):
             if SteadySmoother(steady=self.steady).applies(params, series, method) is None:
-                return "steady"
-        return self.batch_layout(int(np.shape(series.dt)[0]))
+                return SmootherLayout("steady", self.steady, checked=True)
+        return SmootherLayout(self.batch_layout(int(np.shape(series.dt)[0])))
 
     def choose(self, params: Params, series: SensorSeries, method: str,
                state: FilterState | None = None) -> PathChoice:

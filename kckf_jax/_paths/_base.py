@@ -56,6 +56,23 @@ class PathChoice(NamedTuple):
     passed_over: dict[str, str]
 
 
+class SmootherLayout(NamedTuple):
+    """How the smoother lays out a batch for a path (``AbstractPath.smoother_layout``).
+
+    Attributes:
+        name: ``"steady"`` (the backward pass a constant map too: ``SteadySmoother``),
+            ``"lanes"`` (trials as lanes) or ``"sequential"`` (a ``vmap`` of the one-trial
+            smoother).
+        steady: for ``"steady"``, the ``Steady`` path whose constants the smoother uses.
+        checked: for ``"steady"``, whether the steady smoother was already found to apply to
+            these inputs (``Auto``); if not, the smoother checks and says why not.
+    """
+
+    name: str
+    steady: AbstractPath | None = None
+    checked: bool = False
+
+
 class AbstractPath(eqx.Module):
     """One way of computing the filter's estimates.
 
@@ -102,11 +119,11 @@ class AbstractPath(eqx.Module):
         ``vmap`` of the one-trial scan)."""
         return "sequential"
 
-    def smoother_layout(self, params: Params, series: SensorSeries, method: str) -> str:
-        """The smoother's layout for this path on ``series``: ``"steady"``, ``"lanes"`` or
-        ``"sequential"`` (``smooth_batch``); a ``ValueError`` says why a layout asked for does
-        not apply."""
-        return self.batch_layout(int(np.shape(series.dt)[0]))
+    def smoother_layout(self, params: Params, series: SensorSeries, method: str
+                        ) -> SmootherLayout:
+        """The smoother's layout for this path on ``series`` (``smooth_batch``): by default
+        ``batch_layout``'s."""
+        return SmootherLayout(self.batch_layout(int(np.shape(series.dt)[0])))
 
     def recheck(self, params: Params, method: str, step_s: float | None) -> str | None:
         """Why a fitting loss may no longer run this path once the parameters moved

@@ -10,9 +10,12 @@ steps together over rows; ``_lanes_adjoint`` runs the reverse pass.
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import Array
 
 from .._model import Structure
 
@@ -83,16 +86,34 @@ class _Consts:
                 self.column[n, index] = M
 
 
+class LaneStep(NamedTuple):
+    """What one block step on lanes computed (``lane_step``; every array ``(n, Nb, B)``).
+
+    Attributes:
+        z: the new block state (``Nz``).
+        P: the new covariance's upper triangle (``n_tri(Nz)``).
+        nu: each joint's fused Hall innovation before its update (``m``; the kernel's
+            ``block_step``).
+        s: its variance (``m``).
+        y: the predicted ``y = [z, e]`` before any update (``Ny``: the smoother's term).
+        S: its covariance's upper triangle (``n_tri(Ny)``).
+    """
+
+    z: Array
+    P: Array
+    nu: Array
+    s: Array
+    y: Array
+    S: Array
+
+
 def lane_step(st: Structure, consts: _Consts, z, P, rates, noise, hb, rb, vb, ts,
-              innovations: bool = False, moments: bool = False, tape: list | None = None):
+              tape: list | None = None) -> LaneStep:
     """One block step on lanes: ``z`` (``Nz, Nb, B``), ``P`` (upper triangle, ``n_tri, Nb,
     B``), ``rates`` (``m1, Nb, B``), ``noise = (alpha, beta, gamma)`` (``m1, Nb, B`` each),
-    ``hb, rb, vb`` (``m, Nb, B``), ``ts`` (``Nb, B``). Returns the new ``(z, P)`` (the
-    kernel's ``block_update``); ``innovations``: also each joint's fused Hall innovation and
-    its variance, ``(nu, s)`` (``m, Nb, B`` each; the kernel's ``block_step``); ``moments``:
-    also the predicted moments of ``y = [z, e]`` before any update, ``(y, S)`` (``Ny, Nb, B``
-    and the upper triangle of ``S``: the smoother's terms), after the innovations if both.
-    ``tape``: a list that every scalar update appends its terms to (``_update``'s), for
+    ``hb, rb, vb`` (``m, Nb, B``), ``ts`` (``Nb, B``): the kernel's ``block_update`` and what
+    it computed on the way (a caller's scan keeps only what it returns: XLA computes nothing
+    else). ``tape``: a list that every scalar update appends its terms to (``_update``'s), for
     ``lane_step_adjoint``."""
     c = consts
     nz, ny = st.n_z, st.n_z + st.n_e
@@ -102,7 +123,7 @@ def lane_step(st: Structure, consts: _Consts, z, P, rates, noise, hb, rb, vb, ts
     S = (_apply(c.C[0], P) + ts * (_apply(c.C[1], P) + ts * _apply(c.C[2], P))
          + _apply(c.Q[0], alpha) + _apply(c.Q[1], beta) + _apply(c.Q[2], gamma))
     y, S = jax.lax.optimization_barrier((y, S))
-    predicted = (y, S)
+    y_pred, S_pred = y, S
     # The constraint e = 0 as a perfect measurement (KCKF), then one update per joint.
     for i in range(st.n_e):
         e = nz + i
@@ -113,12 +134,7 @@ def lane_step(st: Structure, consts: _Consts, z, P, rates, noise, hb, rb, vb, ts
         nus.append(hb[i] - z[i])
         ss.append(P[c.index[nz][i, i]] + rb[i])
         z, P = _update(c, nz, z, P, i, nus[-1], rb[i], vb[i], tape)
-    out = (z, P)
-    if innovations:
-        out += ((jnp.stack(nus), jnp.stack(ss)),)
-    if moments:
-        out += (predicted,)
-    return out
+    return LaneStep(z, P, jnp.stack(nus), jnp.stack(ss), y_pred, S_pred)
 
 
 def _update(c: _Consts, n: int, z, P, index: int, innovation, r, valid, tape=None):

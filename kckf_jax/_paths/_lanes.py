@@ -17,13 +17,13 @@ reverse pass of the filter and of its innovations is written by hand (``_lanes_a
 
 from __future__ import annotations
 
-from typing import ClassVar
+from typing import ClassVar, NamedTuple
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float
+from jaxtyping import Array, Bool, Float
 
 from .._kernel import (
     Estimate,
@@ -34,7 +34,7 @@ from .._kernel import (
     hall_measurements,
     plausible,
 )
-from .._model import Structure, block_gather, q_blocks, structure
+from .._model import ProcessNoise, Structure, block_gather, q_blocks, structure
 from .._params import Params
 from ._base import AbstractPath, kalman_only
 from ._lane_step import _apply, _Consts, _tri, _tri_index, lane_step, pack_tape
@@ -66,41 +66,129 @@ def row_inputs(params: Params, st: Structure, dt: Float[Array, "T B"],
     return tuple(swap(n) for n in noise), swap(hb), swap(rb), swap(vb)
 
 
-#: The inputs of a no-op row (no time step, every reading missing), per ``lane_inputs`` leaf in
-#: ``tree_leaves`` order: ``ts``, the three noise terms, ``hb``, ``rb``, ``vb``, the gyro.
-NO_OP_INPUTS = (0.0, 0.0, 0.0, 0.0, 0.0, 1.0, False, jnp.nan)
+class LaneInputs(NamedTuple):
+    """Every row's inputs to the lanes scans that do not depend on the state, rows first and
+    trials last (``lane_inputs``): laid out once for all rows, so the scan carries only the
+    state.
+
+    Attributes:
+        ts: the time steps (``T, B``).
+        noise: the process noise (``T, m1, Nb, B`` each term).
+        hb: each block joint's fused Hall reading (``T, m, Nb, B``).
+        rb: its variance.
+        vb: whether it exists.
+        gyro: the gyro readings (``T, G, B``), held where missing.
+    """
+
+    ts: Float[Array, "T B"]
+    noise: ProcessNoise
+    hb: Float[Array, "T m Nb B"]
+    rb: Float[Array, "T m Nb B"]
+    vb: Bool[Array, "T m Nb B"]
+    gyro: Float[Array, "T G B"]
+
+
+#: The inputs of a no-op row (no time step, every reading missing): one scalar per leaf.
+NO_OP_INPUTS = LaneInputs(0.0, ProcessNoise(0.0, 0.0, 0.0), 0.0, 1.0, False, jnp.nan)
 
 
 def lane_inputs(params: Params, st: Structure, dt: Float[Array, "B T"],
-                gyro: Float[Array, "B T G"], hall_v: Float[Array, "B T M"]):
-    """Every row's inputs to ``lane_scan``, rows first and trials last: ``(ts (T, B), (alpha,
-    beta, gamma), hb, rb, vb, gyro (T, G, B))`` (``row_inputs``' terms)."""
+                gyro: Float[Array, "B T G"], hall_v: Float[Array, "B T M"]) -> LaneInputs:
+    """Every row's inputs to the lanes scans (``row_inputs``' terms), rows first and trials
+    last."""
     noise, hb, rb, vb = row_inputs(params, st, jnp.moveaxis(dt, 0, 1),
                                    jnp.moveaxis(hall_v, 0, 1))
-    return (jnp.moveaxis(dt, 0, 1), noise, hb, rb, vb,
-            jnp.moveaxis(gyro, (0, 1, 2), (2, 0, 1)))
+    return LaneInputs(jnp.moveaxis(dt, 0, 1), ProcessNoise(*noise), hb, rb, vb,
+                      jnp.moveaxis(gyro, (0, 1, 2), (2, 0, 1)))
 
 
-def lane_scan(params: Params, st: Structure, z0: Float[Array, "B Nb Nz"],
-              P0: Float[Array, "B Nb Nz Nz"], hold0: Float[Array, "B G"],
-              dt: Float[Array, "B T"] | None,
-              gyro: Float[Array, "B T G"] | None, hall_v: Float[Array, "B T M"] | None,
-              remat_chunk: int | None = None,
-              innovations: bool = False, moments: bool = False,
-              inputs: tuple | None = None, snapshot_row: int | None = None):
-    """The Kalman filter over ``T`` rows of ``B`` trials, trials as lanes.
+class LaneState(NamedTuple):
+    """The filter's state on every lane, lanes first (``FilterState``'s fields as arrays
+    over lanes: ``B Nb Nz``, ``B Nb Nz Nz``, ``B G``)."""
 
-    Returns ``(zT, PT, holdT, rows)``: the final states (``B`` first, as given) and per row
-    ``(z, P upper triangle, skipped)`` with the rows first and trials last:
-    ``(T, Nz, Nb, B)``, ``(T, n_tri, Nb, B)``, ``(T, B)``. ``innovations``: ``rows`` is
-    ``(nu, s, valid)`` instead (``T, m, Nb, B`` each), every joint's fused Hall innovation,
-    its variance and whether it was used (the likelihood's terms; no estimates kept).
-    ``moments``: ``rows`` is ``(z, P, skipped, y, S)``, with each row's predicted moments
-    (``T, Ny, Nb, B`` and ``T, n_tri(Ny), Nb, B``: ``lane_step``'s), for the smoother.
-    ``inputs``: ``lane_inputs(params, st, dt, gyro, hall_v)``, computed beforehand (then
-    ``dt``, ``gyro`` and ``hall_v`` are not read). ``snapshot_row``: also return the states
-    after that many rows, ``(z, P, hold)`` as the final ones, as a fifth item."""
+    z: Float[Array, "B Nb Nz"]
+    P: Float[Array, "B Nb Nz Nz"]
+    hold: Float[Array, "B G"]
+
+
+class LaneRows(NamedTuple):
+    """Per row, what the filter's estimates are read from (``lane_scan``): the block states
+    (``T Nz Nb B``), the covariances' upper triangles (``T n_tri Nb B``) and whether the row's
+    update was skipped (``T B``)."""
+
+    z: Float[Array, "T Nz Nb B"]
+    P: Float[Array, "T X Nb B"]
+    skipped: Bool[Array, "T B"]
+
+
+class LaneInnovations(NamedTuple):
+    """Per row, the likelihood's terms (``lane_innovations_scan``): every joint's fused Hall
+    innovation, its variance and whether it was used (``T m Nb B`` each)."""
+
+    nu: Float[Array, "T m Nb B"]
+    s: Float[Array, "T m Nb B"]
+    valid: Bool[Array, "T m Nb B"]
+
+
+class LaneMoments(NamedTuple):
+    """Per row, the smoother's terms (``lane_moments_scan``): ``LaneRows``' fields and the
+    predicted moments of ``y = [z, e]`` before the row's updates (``T Ny Nb B``, and the upper
+    triangle of ``S``: ``T n_tri(Ny) Nb B``)."""
+
+    z: Float[Array, "T Nz Nb B"]
+    P: Float[Array, "T X Nb B"]
+    skipped: Bool[Array, "T B"]
+    y: Float[Array, "T Ny Nb B"]
+    S: Float[Array, "T Y Nb B"]
+
+
+class LaneRun(NamedTuple):
+    """What a lanes scan returns: the final state of every lane, what it kept per row
+    (``LaneRows``, ``LaneInnovations`` or ``LaneMoments``, as the scan's name says), and the
+    state after ``snapshot_row`` rows where asked (else ``None``)."""
+
+    final: LaneState
+    rows: LaneRows | LaneInnovations | LaneMoments
+    snapshot: LaneState | None = None
+
+
+def lane_scan(params: Params, st: Structure, start: LaneState, inputs: LaneInputs,
+              remat_chunk: int | None = None, snapshot_row: int | None = None) -> LaneRun:
+    """The Kalman filter over ``T`` rows of ``B`` trials, trials as lanes, from ``start``:
+    ``LaneRun`` with ``LaneRows``. ``snapshot_row``: also the states after that many rows."""
+    return _lane_loop(params, st, start, inputs, LaneRows, remat_chunk, snapshot_row)
+
+
+def lane_innovations_scan(params: Params, st: Structure, start: LaneState, inputs: LaneInputs,
+                          remat_chunk: int | None = None) -> LaneRun:
+    """The filter's every fused Hall innovation (the likelihood's terms; no estimates kept):
+    ``LaneRun`` with ``LaneInnovations``."""
+    return _lane_loop(params, st, start, inputs, LaneInnovations, remat_chunk, None)
+
+
+def lane_moments_scan(params: Params, st: Structure, start: LaneState, inputs: LaneInputs
+                      ) -> LaneRun:
+    """The filter with each row's predicted moments (the smoother's forward pass): ``LaneRun``
+    with ``LaneMoments``."""
+    return _lane_loop(params, st, start, inputs, LaneMoments, None, None)
+
+
+def _kept(keep: type, step, x_new, fin, vb):
+    """What a row keeps of its step (``keep`` one of the row types above)."""
+    nz = step.z.shape[0]
+    if keep is LaneInnovations:
+        return LaneInnovations(step.nu, step.s, vb & fin)
+    if keep is LaneMoments:
+        return LaneMoments(x_new[:nz], x_new[nz:], ~fin, step.y, step.S)
+    return LaneRows(x_new[:nz], x_new[nz:], ~fin)
+
+
+def _lane_loop(params: Params, st: Structure, start: LaneState, inputs: LaneInputs,
+               keep: type, remat_chunk: int | None, snapshot_row: int | None) -> LaneRun:
+    """The scan the three above share: the kernel's step on lanes over every row, each row
+    keeping a ``keep``."""
     robot = params.robot
+    z0, P0, hold0 = start
     dtype = z0.dtype
     nz = st.n_z
     tri = _tri(nz)
@@ -111,7 +199,7 @@ def lane_scan(params: Params, st: Structure, z0: Float[Array, "B Nb Nz"],
     # Per block coordinate: which gyro columns make its rate (``rate_map``'s +1 and -1).
     rate_cols = [[(col[int(plus[k])], col[int(minus[k])]) if k >= 0 else None
                   for k in st.angle_index[:, i]] for i in range(st.m + 1)]
-    rows = lane_inputs(params, st, dt, gyro, hall_v) if inputs is None else inputs
+    rows = inputs
     nb = st.angle_index.shape[0]
 
     # The block rates (Eqs. 2, 9, 10) as one constant map of the held gyro columns.
@@ -128,35 +216,28 @@ def lane_scan(params: Params, st: Structure, z0: Float[Array, "B Nb Nz"],
 
     consts = _Consts(st)
 
-    def body(carry, row, record=False):
+    def body(carry, row: LaneInputs, record=False):
         # The state as one array (z entries, then P's upper triangle; each (Nb, B)) and the
-        # held gyro rates: one output per step.
+        # held gyro rates. ``record``: also the skipped flags and the updates' terms, for
+        # the reverse pass (``_lanes_adjoint``).
         x, hold = carry[:2]
-        ts, (alpha, beta, gamma), hb_r, rb_r, vb_r, g_r = row
-        tsb = jnp.broadcast_to(ts, (nb,) + ts.shape)
-        tape = [] if record else None  # the updates' terms, for the reverse pass
-        out = lane_step(st, consts, x[:nz], x[nz:], rates_of(hold), (alpha, beta, gamma),
-                        hb_r, rb_r, vb_r, tsb, innovations, moments, tape)
-        x_new = jnp.concatenate(out[:2])
+        tsb = jnp.broadcast_to(row.ts, (nb,) + row.ts.shape)
+        tape = [] if record else None
+        step = lane_step(st, consts, x[:nz], x[nz:], rates_of(hold), row.noise, row.hb,
+                         row.rb, row.vb, tsb, tape)
+        x_new = jnp.concatenate([step.z, step.P])
         fin = jnp.isfinite(x_new).all(axis=(0, 1))
         x_new = jnp.where(fin, x_new, x)
-        hold = jnp.where(fin & jnp.isfinite(g_r), g_r, hold)
+        hold = jnp.where(fin & jnp.isfinite(row.gyro), row.gyro, hold)
         new = (x_new, hold)
         if snapshot_row is not None:  # the states after row snapshot_row - 1, kept
             i, x_snap, hold_snap = carry[2:]
             take = i == snapshot_row - 1
             new += (i + 1, jnp.where(take, x_new, x_snap), jnp.where(take, hold, hold_snap))
-        states = (x_new[:nz], x_new[nz:], ~fin)
-        if innovations:
-            nu, s = out[2]
-            if record:  # the reverse pass needs the skipped rows as well
-                return new, (nu, s, vb_r & fin, ~fin, pack_tape(tape))
-            return new, (nu, s, vb_r & fin)
-        if moments:
-            return new, states + out[2]
+        kept = _kept(keep, step, x_new, fin, row.vb)
         if record:
-            return new, states + (pack_tape(tape),)
-        return new, states
+            return new, (kept, ~fin, pack_tape(tape))
+        return new, kept
 
     x0 = jnp.stack([jnp.moveaxis(z0[:, :, i], 0, 1) for i in range(nz)]
                    + [jnp.moveaxis(P0[:, :, i, j], 0, 1) for i, j in tri])
@@ -166,24 +247,25 @@ def lane_scan(params: Params, st: Structure, z0: Float[Array, "B Nb Nz"],
         carry += (jnp.asarray(0), x0, hold)
     if remat_chunk:
         # No-op rows pad the last chunk: no time step, every reading missing.
-        final, out = chunked_scan(body, carry, rows, remat_chunk, NO_OP_INPUTS)
-    elif moments or snapshot_row is not None:
+        final, out = chunked_scan(body, carry, rows, remat_chunk,
+                                  jax.tree_util.tree_leaves(NO_OP_INPUTS))
+    elif keep is LaneMoments or snapshot_row is not None:
         # Each row recomputed under reverse mode (only the carries saved): the transposed
         # body then runs as one piece (64 x 10,000 bench, float32: gradient 3.7 -> 3.0 s).
         final, out = jax.lax.scan(jax.checkpoint(body), carry, rows)
     else:  # the filter or its innovations: the reverse pass written by hand (_lanes_adjoint)
-        final, out = scan_rows(st, consts, Rm, body, x0, hold, rows, innovations)
-    def states(x, h):  # lanes layout -> (B, Nb, Nz), (B, Nb, Nz, Nz), (B, G)
+        final, out = scan_rows(st, consts, Rm, body, x0, hold, rows)
+
+    def states(x, h) -> LaneState:  # lanes layout -> lanes first
         z = jnp.moveaxis(x[:nz], (0, 1, 2), (2, 1, 0))
         P = jnp.zeros((z0.shape[0], nb, nz, nz), dtype)
         for (i, j), p in zip(tri, x[nz:]):
             p = jnp.moveaxis(p, 0, 1)
             P = P.at[:, :, i, j].set(p).at[:, :, j, i].set(p)
-        return z, P, hold0.at[:, used].set(jnp.moveaxis(h, 0, 1))
+        return LaneState(z, P, hold0.at[:, used].set(jnp.moveaxis(h, 0, 1)))
 
-    if snapshot_row is not None:
-        return states(*final[:2]) + (out, states(*final[3:]))
-    return states(*final[:2]) + (out,)
+    snapshot = states(*final[3:]) if snapshot_row is not None else None
+    return LaneRun(states(*final[:2]), out, snapshot)
 
 
 def lane_estimates(st: Structure, z_rows: Float[Array, "T Nz Nb B"],
@@ -250,9 +332,9 @@ class Lanes(AbstractPath):
         dtype = state.z.dtype
         series = plausible(params, jax.tree_util.tree_map(
             lambda x: jnp.asarray(x).astype(dtype), series))
-        zT, PT, holdT, (z_rows, P_rows, skipped) = lane_scan(
-            params, st, state.z, state.P, state.gyro_hold, series.dt, series.gyro,
-            series.hall_v, self.remat_chunk)
-        angles, std, bias = lane_estimates(st, z_rows, P_rows)
-        return FilterState(zT, PT, holdT), Estimate(angles, std, bias, jnp.moveaxis(skipped, 0,
-                                                                                    1))
+        run = lane_scan(params, st, LaneState(state.z, state.P, state.gyro_hold),
+                        lane_inputs(params, st, series.dt, series.gyro, series.hall_v),
+                        self.remat_chunk)
+        angles, std, bias = lane_estimates(st, run.rows.z, run.rows.P)
+        return FilterState(*run.final), Estimate(angles, std, bias,
+                                                 jnp.moveaxis(run.rows.skipped, 0, 1))

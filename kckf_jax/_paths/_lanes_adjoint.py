@@ -22,6 +22,8 @@ cotangents through, as the forward passes its state through.
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -31,17 +33,17 @@ from .._model import Structure
 from ._lane_step import _apply, _Consts, lane_step_adjoint
 
 
-def scan_rows(st: Structure, consts: _Consts, Rm: np.ndarray, body, x0, hold0, rows,
-              innovations: bool = False):
-    """``lax.scan(body, (x0, hold0), rows)`` of ``lane_scan``'s body, differentiated by hand.
-    Returns ``((xT, holdT), outputs)``, per row ``(z, P, skipped)``, or with ``innovations``
-    ``(nu, s, valid)`` (every joint's fused Hall innovation and its variance, before its
-    update); ``Rm`` maps the held gyro rates to the block rates (``lane_scan``'s)."""
+def scan_rows(st: Structure, consts: _Consts, Rm: np.ndarray, body, x0, hold0, rows):
+    """``lax.scan(body, (x0, hold0), rows)`` of the lanes scan's body (``_lanes._lane_loop``,
+    ``rows`` its ``LaneInputs``), differentiated by hand. Returns ``((xT, holdT), kept)``,
+    per row the ``LaneRows`` (``z``, ``P``, ``skipped``) or ``LaneInnovations`` (``nu``,
+    ``s``, ``valid``: every joint's fused Hall innovation and its variance, before its update)
+    that ``body`` keeps; ``Rm`` maps the held gyro rates to the block rates."""
 
     @jax.custom_vjp
     def run(x0, hold0, rows):
-        (xT, holdT), out = jax.lax.scan(body, (x0, hold0), rows)
-        return (xT, holdT) + out
+        (xT, holdT), kept = jax.lax.scan(body, (x0, hold0), rows)
+        return (xT, holdT), kept
 
     def fwd(x0, hold0, rows):
         def unwrap(tree):
@@ -52,27 +54,26 @@ def scan_rows(st: Structure, consts: _Consts, Rm: np.ndarray, body, x0, hold0, r
             return any(p.perturbed for p in jax.tree_util.tree_leaves(
                 tree, is_leaf=lambda p: isinstance(p, CustomVJPPrimal)))
 
-        flags = (perturbed(x0), perturbed(hold0), perturbed(rows[0]), perturbed(rows[5]))
+        flags = _Wanted(perturbed(x0), perturbed(hold0), perturbed(rows.ts),
+                        perturbed(rows.gyro))
         x0, hold0, rows = unwrap(x0), unwrap(hold0), unwrap(rows)
 
         def body_h(carry, row):  # the body, keeping every row's skipped flag and tape, and
             # for the derivative in the time steps its state and held rates
-            new, out = body(carry, row, record=True)
-            return new, out + (new if flags[2] else ())
+            new, (kept, skipped, tape) = body(carry, row, record=True)
+            return new, (kept, _Tape(skipped, tape, new if flags.ts else None))
 
-        (xT, holdT), out = jax.lax.scan(body_h, (x0, hold0), rows)
-        at = 3 if innovations else 2  # (nu, s, valid, skipped, ...) or (z, P, skipped, ...)
-        res = (x0, hold0, rows) + out[at:]
-        return (xT, holdT) + out[:3], (res, flags)
+        (xT, holdT), (kept, tape) = jax.lax.scan(body_h, (x0, hold0), rows)
+        return ((xT, holdT), kept), (x0, hold0, rows, tape, flags)
 
     def bwd(saved, cts):
-        (x0, hold0, rows, skipped, tapes, *states), flags = saved
-        want_x0, want_hold0, want_ts, want_gyro = flags
-        want_hold = want_hold0 or want_gyro
-        xT_bar, holdT_bar, first_bar, second_bar, _ = cts
+        x0, hold0, rows, tape_rows, flags = saved
+        want_hold = flags.hold0 or flags.gyro
+        (xT_bar, holdT_bar), kept_bar = cts
+        innovations = hasattr(kept_bar, "nu")
         nz = st.n_z
         nb = st.angle_index.shape[0]
-        T = skipped.shape[0]
+        T = tape_rows.skipped.shape[0]
 
         def dense(ct, like):
             return jnp.zeros_like(like) if isinstance(ct, SymbolicZero) else ct
@@ -83,7 +84,8 @@ def scan_rows(st: Structure, consts: _Consts, Rm: np.ndarray, body, x0, hold0, r
             carry += (dense(holdT_bar, hold0),)
         # Per row: the cotangents of (z, P), or with innovations of (nu, s).
         per_row = tuple(None if isinstance(ct, SymbolicZero) else ct
-                        for ct in (first_bar, second_bar))
+                        for ct in ((kept_bar.nu, kept_bar.s) if innovations
+                                   else (kept_bar.z, kept_bar.P)))
 
         def before(t, x_rows, first):  # the state entering row t
             prev = jax.lax.dynamic_index_in_dim(x_rows, jnp.maximum(t - 1, 0), keepdims=False)
@@ -91,7 +93,8 @@ def scan_rows(st: Structure, consts: _Consts, Rm: np.ndarray, body, x0, hold0, r
 
         def back(carry, row):
             z_bar, P_bar = carry[:2]
-            t, (ts, noise, hb, rb, vb, g), sk, tape, first_bar, second_bar = row
+            t, inputs_t, sk, tape, first_bar, second_bar = row
+            ts, g = inputs_t.ts, inputs_t.gyro
             outputs_bar = {}
             if innovations:
                 outputs_bar = dict(nu_bar=first_bar, s_bar=second_bar)
@@ -103,13 +106,14 @@ def scan_rows(st: Structure, consts: _Consts, Rm: np.ndarray, body, x0, hold0, r
             fin = ~sk
             tsb = jnp.broadcast_to(ts, (nb,) + ts.shape)
             inputs = {}
-            if want_ts:  # the step's inputs, for the derivative in its time step
-                x, hold = before(t, states[0], x0), before(t, states[1], hold0)
+            if flags.ts:  # the step's inputs, for the derivative in its time step
+                x, hold = (before(t, tape_rows.state[0], x0),
+                           before(t, tape_rows.state[1], hold0))
                 inputs = dict(z=x[:nz], P=x[nz:],
                               rates=_apply(Rm, hold).reshape((st.m + 1, nb) + hold.shape[1:]))
             z_new, P_new, noise_bar, hb_bar, rb_bar, ts_bar, rates_bar = lane_step_adjoint(
                 st, consts, tape, jnp.where(fin, z_bar, 0.0), jnp.where(fin, P_bar, 0.0), tsb,
-                want_ts=want_ts, want_rates=want_hold, **inputs, **outputs_bar)
+                want_ts=flags.ts, want_rates=want_hold, **inputs, **outputs_bar)
 
             # A skipped row kept its state: its cotangent passes through, and nothing of the
             # (non-finite) step reaches the inputs.
@@ -124,16 +128,37 @@ def scan_rows(st: Structure, consts: _Consts, Rm: np.ndarray, body, x0, hold0, r
                 from_rates = _apply(Rm.T, rates_bar.reshape((-1,) + rates_bar.shape[2:]))
                 new += (jnp.where(take, 0.0, carry[2]) + kept(from_rates),)
             out = (tuple(kept(x) for x in noise_bar), kept(hb_bar), kept(rb_bar),
-                   kept(ts_bar.sum(axis=0)) if want_ts else None, g_bar)
+                   kept(ts_bar.sum(axis=0)) if flags.ts else None, g_bar)
             return new, out
 
         final, (noise_bar, hb_bar, rb_bar, ts_bar, g_bar) = jax.lax.scan(
-            back, carry, (jnp.arange(T), rows, skipped, tapes) + per_row, reverse=True)
-        x0_bar = jnp.concatenate(final[:2]) if want_x0 else None
-        hold0_bar = final[2] if want_hold0 else None
-        rows_bar = (ts_bar, noise_bar, hb_bar, rb_bar, None, g_bar if want_gyro else None)
+            back, carry, (jnp.arange(T), rows, tape_rows.skipped, tape_rows.tape) + per_row,
+            reverse=True)
+        x0_bar = jnp.concatenate(final[:2]) if flags.x0 else None
+        hold0_bar = final[2] if flags.hold0 else None
+        rows_bar = type(rows)(ts_bar, type(rows.noise)(*noise_bar), hb_bar, rb_bar, None,
+                              g_bar if flags.gyro else None)
         return x0_bar, hold0_bar, rows_bar
 
     run.defvjp(fwd, bwd, symbolic_zeros=True)
-    xT, holdT, z_rows, P_rows, skipped = run(x0, hold0, rows)
-    return (xT, holdT), (z_rows, P_rows, skipped)
+    return run(x0, hold0, rows)
+
+
+class _Wanted(NamedTuple):
+    """Which cotangents the reverse pass forms: of the entering state, the entering gyro
+    hold, the time steps and the gyro readings (only those differentiated)."""
+
+    x0: bool
+    hold0: bool
+    ts: bool
+    gyro: bool
+
+
+class _Tape(NamedTuple):
+    """What the forward pass keeps per row for the reverse one: whether the row was
+    skipped, its updates' terms (``pack_tape``) and, only for the derivative in the time
+    steps, the state and held rates after it (else ``None``)."""
+
+    skipped: jax.Array
+    tape: jax.Array
+    state: tuple | None

@@ -1,6 +1,6 @@
-"""The RTS smoother on lanes: the forward pass of ``lane_scan`` with its predicted moments, then
-the backward pass (``_rts.rts_block``) written out entry by entry with the trial axis last,
-as ``_lanes.py`` writes the filter step.
+"""The RTS smoother on lanes: the forward pass of ``lane_moments_scan`` with its predicted
+moments, then the backward pass (``_rts.rts_block``) written out entry by entry with the trial
+axis last, as ``_lanes.py`` writes the filter step.
 
 The arithmetic is ``rts_block``'s, in the same order: the rows of the next row's ``y = [z, e]``
 the update conditioned on (every z coordinate with variance, the constraint where there was a
@@ -21,7 +21,7 @@ from .._kernel import FilterState, SensorSeries, plausible
 from .._model import Structure
 from .._params import Params
 from ._lane_step import _Consts, _tri
-from ._lanes import lane_estimates, lane_scan
+from ._lanes import LaneMoments, LaneState, lane_estimates, lane_inputs, lane_moments_scan
 
 
 def lane_rts_step(st: Structure, c: _Consts, z_f, P_f, y_pred, S, ts, skipped, z_s, P_s):
@@ -65,9 +65,11 @@ def lane_rts_step(st: Structure, c: _Consts, z_f, P_f, y_pred, S, ts, skipped, z
     return jnp.where(skipped, z_s, z), jnp.where(skipped, P_s, P)
 
 
-def lane_rts(st: Structure, z_rows, P_rows, y_rows, S_rows, ts_rows, skipped):
-    """The backward pass over ``lane_scan``'s rows (rows first, trials last): the smoothed
-    ``(z, P)`` of every row (the last row's are its filtered ones)."""
+def lane_rts(st: Structure, moments: LaneMoments, ts_rows: Float[Array, "T B"]):
+    """The backward pass over ``lane_moments_scan``'s rows (rows first, trials last): the
+    smoothed ``(z, P)`` of every row (the last row's are its filtered ones)."""
+    z_rows, P_rows, skipped, y_rows, S_rows = (moments.z, moments.P, moments.skipped,
+                                               moments.y, moments.S)
     c = _Consts(st)
     nb = z_rows.shape[2]
 
@@ -93,10 +95,9 @@ def lane_smooth(params: Params, st: Structure, series: SensorSeries, state: Filt
     dtype = state.z.dtype
     series = plausible(params, jax.tree_util.tree_map(
         lambda x: jnp.asarray(x).astype(dtype), series))
-    _, _, _, (z_rows, P_rows, skipped, y_rows, S_rows) = lane_scan(
-        params, st, state.z, state.P, state.gyro_hold, series.dt, series.gyro, series.hall_v,
-        moments=True)
-    z, P = lane_rts(st, z_rows, P_rows, y_rows, S_rows, jnp.moveaxis(series.dt, 0, 1),
-                    skipped)
+    rows = lane_moments_scan(params, st, LaneState(state.z, state.P, state.gyro_hold),
+                             lane_inputs(params, st, series.dt, series.gyro,
+                                         series.hall_v)).rows
+    z, P = lane_rts(st, rows, jnp.moveaxis(series.dt, 0, 1))
     angles, std, bias = lane_estimates(st, z, P)
-    return angles, std, bias, jnp.moveaxis(skipped, 0, 1)
+    return angles, std, bias, jnp.moveaxis(rows.skipped, 0, 1)

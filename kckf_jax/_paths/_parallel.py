@@ -45,13 +45,15 @@ def _one_trial(params: Params, series: SensorSeries, method: str, state: FilterS
     series = plausible(params, jax.tree_util.tree_map(lambda x: jnp.asarray(x).astype(dtype),
                                                       series))
     rows, _ = series_inputs(params, st, series, state.gyro_hold)
-    P_last, (Ps, As, Grs, Ghs, ok) = covariance_phase(params, st, state.P, rows)
+    P_last, maps = covariance_phase(params, st, state.P, rows)
+    Ps, As, ok = maps.P, maps.A, maps.ok
     # A skipped row keeps the whole state, its gyro hold included: the rates of the rows after
     # it come from the holds without its readings (the covariance does not depend on them).
     kept = SensorSeries(series.dt, jnp.where(ok[:, None], series.gyro, jnp.nan), series.hall_v)
-    (_, rates, _, hb, _, _), held = series_inputs(params, st, kept, state.gyro_hold)
+    kept_rows, held = series_inputs(params, st, kept, state.gyro_hold)
     # c_k = Gr_k r_k + Gh_k h_k, with the entering state folded into the first row.
-    c = (jnp.einsum("kpaj,kpj->kpa", Grs, rates) + jnp.einsum("kpaj,kpj->kpa", Ghs, hb))
+    c = (jnp.einsum("kpaj,kpj->kpa", maps.Gr, kept_rows.rates)
+         + jnp.einsum("kpaj,kpj->kpa", maps.Gh, kept_rows.hb))
     c = c.at[0].add(jnp.einsum("pab,pb->pa", As[0], state.z))
     z = _compose(As, c)
     est = jax.vmap(lambda zk, Pk: block_estimate(st, zk, Pk, False))(z, Ps)

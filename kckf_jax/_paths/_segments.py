@@ -42,7 +42,7 @@ from .._kernel import Estimate, FilterState, SensorSeries, plausible
 from .._model import structure
 from .._params import Params
 from ._base import AbstractPath, PathRun, is_traced, kalman_only
-from ._lanes import NO_OP_INPUTS, lane_estimates, lane_inputs, lane_scan
+from ._lanes import NO_OP_INPUTS, LaneRows, LaneState, lane_estimates, lane_inputs, lane_scan
 from ._sequential import Sequential
 
 
@@ -130,18 +130,18 @@ class Segments(AbstractPath):
         """The segmented filter and whether every segment's check passed (if not, the
         estimates are not the sequential path's: use ``run``, which falls back). The first
         pass and every repair pass (each in a ``lax.cond``) in one program, for a caller's
-        ``jit``; from the host ``compute`` runs ``run_pass`` instead, each pass a program of
+        ``jit``; from the host ``compute`` runs ``_run_pass`` instead, each pass a program of
         its own, so that a recording whose check passes compiles no
         repair (one recorded-like hour: 2.95 -> 1.75 s of compiling)."""
-        last = self.run_pass(params, series, method, state)[2]
+        last = self._run_pass(params, series, method, state)[2]
         B, T = jnp.shape(series.dt)
         for _ in range(self.repairs if self.segments_of(B, T, state.z.dtype) > 1 else 0):
             last = jax.lax.cond(last.ok, lambda p: p,
-                                lambda p: self.run_pass(params, series, method, state, p)[2],
+                                lambda p: self._run_pass(params, series, method, state, p)[2],
                                 last)
         return self._result(params, series, method, state, last) + (last.ok,)
 
-    def run_pass(self, params: Params, series: SensorSeries, method: str, state: FilterState,
+    def _run_pass(self, params: Params, series: SensorSeries, method: str, state: FilterState,
                  last: SegmentPass | None = None) -> tuple[FilterState, Estimate, SegmentPass]:
         """One pass over the segments: the first (``last`` is ``None``: every segment warmed
         up from the entering state) or a repair (every segment's own rows again, entering
@@ -165,7 +165,8 @@ class Segments(AbstractPath):
         own = lane_inputs(params, st, *(x.reshape((B * S, L) + x.shape[2:]) for x in rows))
         first = np.arange(B * S) % S == 0  # the lanes that hold a trial's first segment
         if last is None:
-            starts = tuple(jnp.repeat(x, S, axis=0) for x in (state.z, state.P, state.gyro_hold))
+            start = LaneState(*(jnp.repeat(x, S, axis=0)
+                                for x in (state.z, state.P, state.gyro_hold)))
             inputs = own
             if W:
                 # Segment s first runs the last W rows of segment s - 1 (W <= L): the same
@@ -175,20 +176,17 @@ class Segments(AbstractPath):
                     w = jnp.where(first, fill, jnp.roll(x[L - W:], 1, axis=-1))
                     return jnp.concatenate([w, x])
 
-                leaves, tree = jax.tree_util.tree_flatten(own)
-                inputs = jax.tree_util.tree_unflatten(
-                    tree, [warm(x, f) for x, f in zip(leaves, NO_OP_INPUTS, strict=True)])
-            zT, PT, hT, (z_rows, P_rows, skipped), entered = lane_scan(
-                params, st, *starts, None, None, None, inputs=inputs, snapshot_row=W)
-            rows_out = (z_rows[W:], P_rows[W:], skipped[W:])
+                inputs = jax.tree_util.tree_map(warm, own, NO_OP_INPUTS)
+            run = lane_scan(params, st, start, inputs, snapshot_row=W)
+            rows_out = jax.tree_util.tree_map(lambda x: x[W:], run.rows)
+            entered = run.snapshot
         else:
-            entered = tuple(jnp.where(_lanes_first(first, e), e, jnp.roll(x, 1, axis=0))
-                            for e, x in zip(last.entered, last.ended))
-            zT, PT, hT, rows_out = lane_scan(params, st, *entered, None, None, None,
-                                             inputs=own)
-        ended = (zT, PT, hT)
-        this = SegmentPass(ended, entered, rows_out,
-                           segment_check(entered, ended, B, S, self.atol(dtype)))
+            entered = LaneState(*(jnp.where(_lanes_first(first, e), e, jnp.roll(x, 1, axis=0))
+                                  for e, x in zip(last.entered, last.ended)))
+            run = lane_scan(params, st, entered, own)
+            rows_out = run.rows
+        this = SegmentPass(run.final, entered, rows_out,
+                           segment_check(entered, run.final, B, S, self.atol(dtype)))
         return self._result(params, series, method, state, this) + (this,)
 
     def _layout(self, series: SensorSeries, dtype) -> tuple[int, int, int, int, int]:
@@ -203,39 +201,38 @@ class Segments(AbstractPath):
         """The final state and estimates of a pass, trials first."""
         st = structure(params.robot, method)
         B, T, S, _, L = self._layout(series, state.z.dtype)
-        z_rows, P_rows, skipped = this.rows
-        angles, std, bias = lane_estimates(st, z_rows, P_rows)
+        angles, std, bias = lane_estimates(st, this.rows.z, this.rows.P)
 
         def trials(x):  # (B * S, L, ...) -> (B, T, ...)
             return x.reshape((B, S * L) + x.shape[2:])[:, :T]
 
         est = Estimate(trials(angles), trials(std), trials(bias),
-                       trials(jnp.moveaxis(skipped, 0, 1)))
+                       trials(jnp.moveaxis(this.rows.skipped, 0, 1)))
         return FilterState(*(_split(x, B, S)[:, -1] for x in this.ended)), est
 
 
 @eqx.filter_jit
 def _one_pass(path: Segments, params, series, method, state, last):
-    final, est, this = path.run_pass(params, series, method, state, last)
+    final, est, this = path._run_pass(params, series, method, state, last)
     return final, est, this._replace(rows=None)
 
 
 class SegmentPass(NamedTuple):
-    """One pass of ``Segments.run_pass`` over every lane (trials x segments): what a repair
+    """One pass of ``Segments._run_pass`` over every lane (trials x segments): what a repair
     pass starts from and what the estimates are read from.
 
     Attributes:
-        ended: every lane's ``(z, P, hold)`` after its own rows (lanes first).
-        entered: every lane's ``(z, P, hold)`` entering its own rows.
-        rows: per row ``(z, P upper triangle, skipped)`` (``lane_scan``'s), or ``None`` where
+        ended: every lane's state after its own rows (lanes first).
+        entered: every lane's state entering its own rows.
+        rows: per row what the estimates are read from (``lane_scan``'s), or ``None`` where
             a caller no longer needs them.
         ok: whether every segment entered where the one before it ended
             (``segment_check``).
     """
 
-    ended: tuple
-    entered: tuple
-    rows: tuple | None
+    ended: LaneState
+    entered: LaneState
+    rows: LaneRows | None
     ok: Bool[Array, ""]
 
 
@@ -248,7 +245,8 @@ def _lanes_first(first, x):
     return first.reshape((-1,) + (1,) * (x.ndim - 1))
 
 
-def segment_check(entered, ended, B: int, S: int, atol: float) -> Bool[Array, ""]:
+def segment_check(entered: LaneState, ended: LaneState, B: int, S: int, atol: float
+                  ) -> Bool[Array, ""]:
     """Whether every segment started where the one before it ended: ``entered`` and
     ``ended`` are the lanes' ``(z, P, hold)`` (``B S`` lanes, a trial's segments in order);
     the entering state of segment ``s >= 1`` against the final state of segment ``s - 1``:

@@ -17,7 +17,7 @@ has no branch and no fallback.
 
 from __future__ import annotations
 
-from typing import ClassVar
+from typing import ClassVar, NamedTuple
 
 import equinox as eqx
 import jax
@@ -26,6 +26,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from .._kernel import (
+    BlockInputs,
     Estimate,
     FilterState,
     SensorSeries,
@@ -37,6 +38,7 @@ from .._kernel import (
 from .._model import Structure, structure
 from .._params import Params
 from ._affine import (
+    StepMaps,
     covariance_phase,
     input_weights,
     last_finite,
@@ -45,9 +47,27 @@ from ._affine import (
     series_inputs,
     step_maps,
 )
-from ._base import AbstractPath, is_traced, kalman_only, regular_step, relative_change
+from ._base import (
+    AbstractPath,
+    SmootherLayout,
+    is_traced,
+    kalman_only,
+    regular_step,
+    relative_change,
+)
 from ._chunks import ChunkPlan, chunk_operator, chunk_rows, raw_readings
 from ._row_scan import row_scan
+
+
+class SteadyForm(NamedTuple):
+    """What the steady path computes once for a regular batch (``Steady._form``): the head
+    rows' own maps and covariances (``form.head``, a leading row axis), the converged map
+    after them (``form.map``) and the first converged row's block inputs (``form.first``:
+    its time step and noise stand for every later row's)."""
+
+    head: StepMaps
+    map: StepMaps
+    first: BlockInputs
 
 
 class Steady(AbstractPath):
@@ -123,11 +143,12 @@ class Steady(AbstractPath):
         P0 = P0 if P0.ndim == 3 else P0[0]
         return self.converges(params, method, step_s, P0)
 
-    def smoother_layout(self, params: Params, series: SensorSeries, method: str) -> str:
-        """``"steady"``: the smoother's backward pass a constant map too (``SteadySmoother``,
-        which says why where it does not apply; under a caller's trace the caller vouches,
-        as for the filter)."""
-        return "steady"
+    def smoother_layout(self, params: Params, series: SensorSeries, method: str
+                        ) -> SmootherLayout:
+        """``"steady"``: the smoother's backward pass a constant map too (``SteadySmoother``
+        with these constants, which says why where it does not apply; under a caller's trace
+        the caller vouches, as for the filter)."""
+        return SmootherLayout("steady", self)
 
     def recheck(self, params: Params, method: str, step_s: float | None) -> str | None:
         """The covariance must still converge with the new parameters (``converges``)."""
@@ -158,13 +179,12 @@ class Steady(AbstractPath):
         series = plausible(params, jax.tree_util.tree_map(
             lambda x: jnp.asarray(x).astype(dtype), series))
         T = series.dt.shape[1]
-        (Ps, As, Grs, Ghs, ok), (P_ss, A, Gr, Gh), _ = self.head_and_map(params, st, series,
-                                                                         state)
+        form = self._form(params, st, series, state)
+        Ps, ok, P_ss = form.head.P, form.head.ok, form.map.P
         zeros = jnp.zeros(P_ss.shape[:2], dtype)
         std_head = jax.vmap(lambda Pk: block_estimate(st, zeros, Pk, False).angle_std)(Ps)
         std_tail = block_estimate(st, zeros, P_ss, False).angle_std
-        angles, bias, z = self._mean(params, st, series, state.z, state.gyro_hold,
-                                     (A, Gr, Gh), (As, Grs, Ghs))
+        angles, bias, z = self._mean(params, st, series, state.z, state.gyro_hold, form)
         std = jnp.concatenate([std_head, jnp.broadcast_to(std_tail, (T - n_head,)
                                                           + std_tail.shape)])
         # Regular data never skip a row (the convergence check ran these rows' covariance).
@@ -174,35 +194,57 @@ class Steady(AbstractPath):
         held = jax.vmap(last_finite)(series.gyro, state.gyro_hold)
         return FilterState(z, jnp.broadcast_to(P_ss, state.P.shape), held), est
 
-    def head_and_map(self, params: Params, st: Structure, series: SensorSeries,
-                     state: FilterState):
+    def _form(self, params: Params, st: Structure, series: SensorSeries, state: FilterState
+             ) -> SteadyForm:
         """The covariance phase over the head rows and the converged map after them, from
         trial 0's rows (a regular batch: its time steps, masks and noise stand for every
-        trial's). Returns ``(Ps, As, Grs, Ghs, ok)`` per head row, ``(P_ss, A, Gr, Gh)`` and
-        the first converged row's block inputs (``block_inputs``)."""
+        trial's)."""
         n_head = self.head_rows(state.z.dtype)
         trial0 = jax.tree_util.tree_map(lambda x: x[0, : n_head + 1], series)
         rows, _ = series_inputs(params, st, trial0, state.gyro_hold[0])
         head = jax.tree_util.tree_map(lambda x: x[:n_head], rows)
-        P_head, head_rows = covariance_phase(params, st, state.P[0], head)
+        P_head, head_maps = covariance_phase(params, st, state.P[0], head)
         last = jax.tree_util.tree_map(lambda x: x[n_head], rows)
-        return head_rows, step_maps(params, st, P_head, last), last
+        return SteadyForm(head_maps, step_maps(params, st, P_head, last), last)
 
     def _mean(self, params: Params, st: Structure, series: SensorSeries,
-              z0: Float[Array, "B Nb Nz"], hold0: Float[Array, "B G"], maps, head_maps,
-              states: bool = False
-              ) -> tuple[Float[Array, "B T ..."], Float[Array, "B T K"] | None,
-                         Float[Array, "B Nb Nz"]]:
-        """The mean over a batch of trials: the head rows' own maps ``head_maps = (As, Grs,
-        Ghs)`` (a leading row axis), then the converged map ``maps = (A, Gr, Gh)``.
+             z0: Float[Array, "B Nb Nz"], hold0: Float[Array, "B G"], form: SteadyForm
+             ) -> tuple[Float[Array, "B T K"], Float[Array, "B T K"], Float[Array, "B Nb Nz"]]:
+        """The angles and biases of every row of a batch of trials, and the last row's block
+        state (``_affine_rows`` with the angles' and biases' output map)."""
+        out_map = output_map(st)
+        K = len(st.block_of)
+        outs, z = self._affine_rows(params, st, series, z0, hold0, form, out_map, K)
+        return outs[0], outs[1], z
+
+    def _block_states(self, params: Params, st: Structure, series: SensorSeries,
+                     z0: Float[Array, "B Nb Nz"], hold0: Float[Array, "B G"], form: SteadyForm
+                     ) -> Float[Array, "B T Nb Nz"]:
+        """Every row's block state (the smoother's filtered means): ``_affine_rows`` with every
+        block coordinate an output (two halves, padded to even)."""
+        n_trials, nb, nz = z0.shape
+        q = nb * nz
+        K = -(-q // 2)
+        out_map = np.eye(2 * K, q).reshape(2 * K, nb, nz)
+        outs, _ = self._affine_rows(params, st, series, z0, hold0, form, out_map, K)
+        zs = jnp.concatenate(outs, axis=-1)[..., :q]
+        return zs.reshape(n_trials, series.dt.shape[1], nb, nz)
+
+    def _affine_rows(self, params: Params, st: Structure, series: SensorSeries,
+                     z0: Float[Array, "B Nb Nz"], hold0: Float[Array, "B G"], form: SteadyForm,
+                     out_map: np.ndarray, K: int
+                     ) -> tuple[tuple[Float[Array, "B T K"], Float[Array, "B T K"]],
+                                Float[Array, "B Nb Nz"]]:
+        """The mean over a batch of trials, read through ``out_map`` (``2K`` outputs, two
+        halves of ``K``): the head rows' own maps (``form.head``), then the converged map
+        (``form.map``).
 
         Row ``k``: ``z_k = A z_{k-1} + g_{k-1}[used] Wg + hall_angle(V_k) Wh`` (``Wg, Wh`` from
         ``input_weights``). The head is a scan of its rows, every trial at once (trials
         innermost: chunk operators would need building per row, which costs more than these
         rows). The converged rows go as whole chunks (``chunk_rows``), then the last 1 to
-        ``chunk_rows`` rows one by one, which gives the final state. Returns ``(angles,
-        biases, z_last)``; ``states``: ``(z_rows, None, z_last)`` instead, every row's block
-        state (``B T Nb Nz``: the smoother's filtered means)."""
+        ``chunk_rows`` rows one by one, which gives the final state. Returns the two halves of
+        the outputs and the last row's block state."""
         dtype = z0.dtype
         robot = params.robot
         Jr, Jh = reading_maps(params, st, dtype)
@@ -212,12 +254,6 @@ class Steady(AbstractPath):
         T = series.dt.shape[1]
         L = self.chunk_rows
         Gu = len(used)
-        if states:  # every block coordinate an output (two halves, padded to even)
-            K = -(-q // 2)
-            out_map = np.eye(2 * K, q).reshape(2 * K, nb, nz)
-        else:  # the angles, then the biases
-            out_map = output_map(st)
-            K = len(st.block_of)
         out_map_j = jnp.asarray(out_map, dtype)
         coeffs = params.hall_coeffs
 
@@ -233,12 +269,12 @@ class Steady(AbstractPath):
             return (jnp.einsum("pab,Bpb->Bpa", A_k, z)
                     + jnp.einsum("Bg,gpa->Bpa", g, Wg_k)).reshape(n_trials, q)
 
-        A, Gr, Gh = maps
-        Wg, Wh = input_weights(Gr, Gh, Jr, Jh)
+        A = form.map.A
+        Wg, Wh = input_weights(form.map.Gr, form.map.Gh, Jr, Jh)
         out = jnp.zeros((n_trials, T, K), dtype)
         outs = (out, out)
-        As = head_maps[0]
-        Wgs, Whs = input_weights(head_maps[1], head_maps[2], Jr, Jh)
+        As = form.head.A
+        Wgs, Whs = input_weights(form.head.Gr, form.head.Gh, Jr, Jh)
         n_head = As.shape[0]
         x = jnp.moveaxis(readings(0, n_head), 0, -1)  # (n_head, I, B)
         g = jnp.concatenate([hold0[:, list(used)].T[None], x[:-1, :Gu]])  # previous rates
@@ -266,10 +302,7 @@ class Steady(AbstractPath):
                 "Bm,mpa->Bpa", x[:, k, Gu:], Wh)
             zs.append(z)
         outs = write(outs, jnp.einsum("kBpa,opa->Bko", jnp.stack(zs), out_map_j), first)
-        if states:
-            zs = jnp.concatenate(outs, axis=-1)[..., :q]
-            return zs.reshape(n_trials, T, nb, nz), None, z
-        return outs[0], outs[1], z
+        return outs, z
 
     def _block_rows(self, n_trials: int) -> int:
         """Rows per block of the converged rows' pass, for ``n_trials`` trials: a power of two,
@@ -294,9 +327,8 @@ def _head_covariance(params: Params, method: str, P0: Float[Array, "Nb Nz Nz"],
     zero = jnp.zeros(st.n_z, dtype)
 
     def body(P, row):
-        dt, rates, (alpha, beta, gamma), hb, rb, vb = row
-        P = jax.vmap(lambda *a: block_update(st, zero, *a, dt)[1])(
-            P, rates, alpha, beta, gamma, hb, rb, vb)
+        P = jax.vmap(lambda *a: block_update(st, zero, *a, row.dt)[1])(
+            P, row.rates, *row.noise, row.hb, row.rb, row.vb)
         return P, None
 
     P_n, _ = jax.lax.scan(body, P0, jax.tree_util.tree_map(lambda x: x[:n], rows))

@@ -11,7 +11,7 @@ one constant (``_rts.rts_gain``) and the backward mean is the constant affine re
 covariance does not depend on the data: from ``P_ss`` at the last row it converges backward to
 a fixed point, which ``applies`` checks within ``tail_rows`` rows of the end, as ``Steady``
 checks the forward one. So: the filtered means of every row from ``Steady``'s own chunked map
-(``Steady._mean(states=True)``), the backward mean over the converged rows in chunks of matrix
+(``Steady._block_states``), the backward mean over the converged rows in chunks of matrix
 products (``reverse_affine``), the covariance recursion over the last ``tail_rows`` rows only,
 and the head rows, whose covariances still change, with the general backward step
 (``_rts.rts_rows``). The same estimates as the sequential smoother, to rounding (tested).
@@ -120,11 +120,11 @@ class SteadySmoother(eqx.Module):
         n_trials, T = series.dt.shape
         nz = st.n_z
         # The forward pass: Steady.run's covariances and maps, every row's block state.
-        (Ps, As, Grs, Ghs, ok), (P_ss, A, Gr, Gh), last = steady.head_and_map(
-            params, st, series, state)
-        Z, _, _ = steady._mean(params, st, series, state.z, state.gyro_hold, (A, Gr, Gh),
-                               (As, Grs, Ghs), states=True)  # (B, T, Nb, Nz)
-        ts, noise = last[0], last[2]  # every row after the first: the same step and noise
+        form = steady._form(params, st, series, state)
+        Ps, ok, P_ss = form.head.P, form.head.ok, form.map.P
+        Z = steady._block_states(params, st, series, state.z, state.gyro_hold,
+                                 form)  # (B, T, Nb, Nz)
+        ts, noise = form.first.dt, form.first.noise  # every row after the first: the same
         # The predicted mean of the row after each row: F z_k + ts G1 r_k+1 (r from row k's
         # gyro: every reading present), per trial.
         Jr, _ = reading_maps(params, st, dtype)
@@ -215,7 +215,7 @@ def _tail_change(params: Params, method: str, P0: Float[Array, "Nb Nz Nz"],
                           jnp.zeros((2, params.robot.n_hall), dtype))
     rows, _ = series_inputs(params, st, series, jnp.zeros(3 * params.robot.n_links, dtype))
     last = jax.tree_util.tree_map(lambda x: x[1], rows)
-    P_ss = step_maps(params, st, P_head, last)[0]
-    gain = _converged_gain(st, P_ss, last[2], step_s)
+    P_ss = step_maps(params, st, P_head, last).P
+    gain = _converged_gain(st, P_ss, last.noise, step_s)
     _, P_rows = _covariance_tail(st, P_ss, gain, n + 1)
     return relative_change(P_rows[n - 1], P_rows[n])
