@@ -19,6 +19,7 @@ from ._likelihood import consistency, innovations
 from ._metrics import rmse_table
 from ._model import FILTER_METHODS
 from ._params import Params
+from ._paths import AbstractPath
 from ._run import filter_sessions, series_faults, session_params, session_series
 from ._screen import OUT_OF_RANGE, describe_faults, fault_stretches
 from ._session import Session, split_at_gaps
@@ -124,7 +125,8 @@ def _innovations(params, series, method):
 
 def evaluate_sessions(sessions: Sequence[Session], methods: Sequence[str],
                       params: Params | None = None, burn_in_s: float = 0.0,
-                      gaps: GapPolicy = GapPolicy(), smooth: bool = False):
+                      gaps: GapPolicy = GapPolicy(), smooth: bool = False,
+                      path: str | AbstractPath = "auto"):
     """Every method on ``sessions``: the ``kckf evaluate --json`` document and the estimated
     angles ``{method: [(T, K) per session]}``.
 
@@ -135,7 +137,8 @@ def evaluate_sessions(sessions: Sequence[Session], methods: Sequence[str],
     line for people per finding, and per method whose RMSE is over fewer steps than have
     truth. ``smooth``: the Kalman methods' smoothed estimates are scored (``"smoothed":
     true``; their NIS is the filter's). ``"_nis_rows"`` (not for the JSON) has each Kalman
-    method's per-row NIS for the plots.
+    method's per-row NIS for the plots. ``path``: as ``filter_sessions``' (the command passes
+    ``Auto(runs=1)``: it filters each batch once).
 
     Raises ``ValueError`` naming the session when one has no motion capture over its sensor
     rows."""
@@ -149,7 +152,8 @@ def evaluate_sessions(sessions: Sequence[Session], methods: Sequence[str],
     out, angles, nis_rows = {}, {}, {}
     for m in methods:
         kalman = m in FILTER_METHODS
-        est = filter_sessions(sessions, m, params, gaps=gaps, smooth=smooth and kalman)
+        est = filter_sessions(sessions, m, params, gaps=gaps, smooth=smooth and kalman,
+                              path=path)
         angles[m] = [e.angles for e in est]
         out[m] = rmse_table(sessions, angles[m], burn_in_s)
         out[m]["path"] = "+".join(dict.fromkeys(e.path for e in est))

@@ -104,6 +104,15 @@ def cmd_observability(args) -> int:
     return 0
 
 
+def _one_shot():
+    """The path policy of a command that filters each recording once: compile time weighed
+    (``Auto(runs=1)``: the lanes and segments paths only where they are done sooner, their
+    compile included)."""
+    from ._paths import Auto
+
+    return Auto(runs=1)
+
+
 def cmd_filter(args) -> int:
     from ._report import data_faults, estimate_faults, write_estimates
     from ._run import filter_sessions
@@ -113,7 +122,7 @@ def cmd_filter(args) -> int:
     params = _load_params(args, [session])
     _warn(args, data_faults([session], params, _gaps(args))[1])
     (est,) = filter_sessions([session], method, params, gaps=_gaps(args),
-                             smooth=args.smooth)
+                             smooth=args.smooth, path=_one_shot())
     _warn(args, estimate_faults([session], method, [est]))
     write_estimates(args.output, session, est)
     _say(args, f"wrote {args.output}: {session.n_steps} rows of {method} estimates "
@@ -131,7 +140,7 @@ def cmd_evaluate(args) -> int:
     from ._report import evaluate_sessions, format_table
 
     doc, angles = evaluate_sessions(sessions, methods, params, args.burn_in, _gaps(args),
-                                    smooth=args.smooth)
+                                    smooth=args.smooth, path=_one_shot())
     _warn(args, doc["warnings"])
     if args.plot:
         from ._report import session_name

@@ -393,6 +393,42 @@ def test_auto_under_a_callers_trace_decides_on_shapes_as_documented():
     assert Auto(lanes=Lanes(min_trials=4)).batch_layout(4) == "lanes"
 
 
+def test_auto_weighs_compile_time_for_the_runs_it_is_told_and_repairs_it_foresees():
+    """``Auto(runs=1)`` (the command's policy) takes the lanes or segments path only where its
+    compile plus one run is estimated shorter than the sequential path's; a stretch without a
+    joint's Hall readings at least half a warm-up long keeps ``Auto`` off the segments path
+    (its check would fail and the repairs cost more, ``benchmarks/one_shot.py``)."""
+    robot = Robot.from_spec("x")
+    params = Params.paper_defaults(robot, dtype=jnp.float32)
+    rng = np.random.default_rng(0)
+
+    def rows(B, T):  # irregular steps: the steady path does not apply
+        dt = jnp.asarray(0.01 + 1e-4 * rng.random((B, T)), jnp.float32).at[:, 0].set(0.0)
+        return SensorSeries(dt, jnp.zeros((B, T, 6), jnp.float32),
+                            jnp.full((B, T, 2), 1.3, jnp.float32))
+
+    twelve, many = rows(12, 10_000), rows(64, 10_000)
+    assert choose_path(params, twelve).path.name == "lanes"
+    once = choose_path(params, twelve, path=Auto(runs=1))
+    assert once.path.name == "sequential"
+    assert "for 1 run(s) its compile costs more than it saves" in once.passed_over["lanes"]
+    assert choose_path(params, many, path=Auto(runs=1)).path.name == "lanes"
+    assert choose_path(params, twelve, path=Auto(runs=100)).path.name == "lanes"
+    hour = jax.tree_util.tree_map(lambda x: x[0], rows(1, 40_000))
+    assert choose_path(params, hour).path.name == "segments"
+    assert choose_path(params, hour, path=Auto(runs=1)).path.name == "sequential"
+    W = Auto().segments.warmup(jnp.float32)
+    for gap, expected in ((W // 4, "segments"), (W // 2, "sequential")):
+        holed = SensorSeries(hour.dt, hour.gyro, hour.hall_v.at[20_000:20_000 + gap, 0:2].set(
+            jnp.nan))
+        choice = choose_path(params, holed)
+        assert choice.path.name == expected, choice.passed_over
+    assert f"for {W // 2} rows (from row 20000)" in choice.passed_over["segments"]
+    # One sensor of the pair is enough: the joint still has a reading.
+    one_side = SensorSeries(hour.dt, hour.gyro, hour.hall_v.at[20_000:30_000, 0].set(jnp.nan))
+    assert choose_path(params, one_side).path.name == "segments"
+
+
 def test_no_path_is_decided_outside_the_paths_package():
     """No class check of a path and no path's threshold outside ``kckf_jax/_paths``: every
     question goes to the path objects (``AbstractPath``)."""

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from typing import ClassVar
 
+import equinox as eqx
 import jax
 import numpy as np
 
@@ -20,7 +21,8 @@ from ._steady_smooth import SteadySmoother
 
 
 class Auto(AbstractPath):
-    """The fastest path that applies: any of ``before`` that applies, in order; then
+    """The fastest path that applies (for ``runs`` runs: the soonest done, compile
+    included): any of ``before`` that applies, in order; then
     ``Steady`` on a regular recording whose covariance converges; else, for a Kalman filter,
     ``Lanes`` for a batch of at least ``lanes.min_trials`` trials; else ``Segments`` for
     recordings long enough to cut into ``segments.min_segments`` segments (``segments=None``:
@@ -46,6 +48,14 @@ class Auto(AbstractPath):
         sequential: the ``Sequential`` path to fall back on (its remat chunk).
         before: paths of the caller's to try first, in order (a path added by
             ``docs/performance.md``'s recipe: no line of this class changes).
+        runs: how many times the caller runs the chosen program on these shapes, when it
+            knows (the ``kckf`` command filters a recording once: ``1``). Then the lanes and
+            segments paths are taken only where their compile plus ``runs`` runs is
+            estimated shorter than the sequential path's (``AbstractPath.cost``, measured:
+            for one run an hour takes the sequential path, 1.9 s against 3.3 s, and 12
+            trials of 10,000 rows too, 2.3 s against 3.1 s; 64 trials take lanes, 3.3 s
+            against 5.1 s). ``None`` (default, as for a fit or a program run many times):
+            by run time alone.
     """
 
     name: ClassVar[str] = "auto"
@@ -54,6 +64,7 @@ class Auto(AbstractPath):
     segments: Segments | None = Segments()
     sequential: Sequential = Sequential()
     before: tuple[AbstractPath, ...] = ()
+    runs: int | None = eqx.field(static=True, default=None)
 
     def for_loss(self, remat_chunk: int | None = None, gradient: bool = True) -> Auto:
         """The policy for a fitting loss: not ``Segments`` (its warm-ups cut each segment's
@@ -109,16 +120,20 @@ class Auto(AbstractPath):
                 return PathChoice(self.steady, passed)
             passed["steady"] = why
         n_trials = np.shape(series.dt)[0] if np.ndim(series.dt) > 1 else 1
+        n_rows = int(np.shape(series.dt)[-1])
         why = self.lanes.applies(params, series, method, state)
         if why is None and n_trials >= self.lanes.min_trials:
-            return PathChoice(self.lanes, passed)
+            why = self._outweighed(self.lanes, n_trials, n_rows)
+            if why is None:
+                return PathChoice(self.lanes, passed)
         passed["lanes"] = why or (f"{n_trials} trial(s), fewer than {self.lanes.min_trials}: "
                                   "lanes pay for batches")
         if self.segments is None:
             passed["segments"] = "not offered here"
         else:
-            why = self.segments.applies(params, series, method, state) or self.segments.pays(
-                series, _dtype(params, state))
+            why = (self.segments.applies(params, series, method, state)
+                   or self._outweighed(self.segments, n_trials, n_rows)
+                   or self.segments.pays(series, _dtype(params, state)))
             if why is None:
                 return PathChoice(self.segments, passed)
             passed["segments"] = why
@@ -126,6 +141,18 @@ class Auto(AbstractPath):
             return PathChoice(Parallel(), passed)
         passed["parallel"] = "slower than the sequential path on a CPU"
         return PathChoice(self.sequential, passed)
+
+    def _outweighed(self, path: AbstractPath, n_trials: int, n_rows: int) -> str | None:
+        """With ``runs`` set: why ``path``'s compile outweighs what it saves over the
+        sequential path in ``runs`` runs (estimated, ``AbstractPath.cost``), or ``None``."""
+        if self.runs is None:
+            return None
+        fast, slow = path.cost(n_trials, n_rows), self.sequential.cost(n_trials, n_rows)
+        if fast is None or slow is None or fast.total(self.runs) <= slow.total(self.runs):
+            return None
+        return (f"for {self.runs} run(s) its compile costs more than it saves: about "
+                f"{fast.total(self.runs):.2f} s against {slow.total(self.runs):.2f} s "
+                "sequential (compile and run, estimated)")
 
     def applies(self, params: Params, series: SensorSeries, method: str,
                 state: FilterState | None = None) -> str | None:

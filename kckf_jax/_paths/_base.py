@@ -56,6 +56,18 @@ class PathChoice(NamedTuple):
     passed_over: dict[str, str]
 
 
+class PathCost(NamedTuple):
+    """What a caller waits for on a path, estimated (``AbstractPath.cost``): the seconds its
+    program takes to compile, and to run once."""
+
+    compile_s: float
+    run_s: float
+
+    def total(self, runs: int) -> float:
+        """Compile once, run ``runs`` times."""
+        return self.compile_s + runs * self.run_s
+
+
 class SmootherLayout(NamedTuple):
     """How the smoother lays out a batch for a path (``AbstractPath.smoother_layout``).
 
@@ -89,7 +101,7 @@ class AbstractPath(eqx.Module):
     and may refine what the others ask (defaults here): ``compute`` (how ``run_filter`` and
     ``filter_batch`` run it from the host), ``batch_layout`` and ``smoother_layout`` (how the
     likelihood and the smoother lay out a batch for it), ``recheck`` (whether a fitting loss
-    may keep it once the parameters moved).
+    may keep it once the parameters moved), ``cost`` (what a caller waits for on it).
     """
 
     name: eqx.AbstractClassVar[str]
@@ -124,6 +136,12 @@ class AbstractPath(eqx.Module):
         """The smoother's layout for this path on ``series`` (``smooth_batch``): by default
         ``batch_layout``'s."""
         return SmootherLayout(self.batch_layout(int(np.shape(series.dt)[0])))
+
+    def cost(self, n_trials: int, n_rows: int) -> PathCost | None:
+        """What filtering ``n_trials`` trials of ``n_rows`` rows on this path costs, estimated
+        from measurements (``Auto(runs=...)`` weighs compile time with it), or ``None``: no
+        estimate (``Auto`` then judges by run time alone)."""
+        return None
 
     def recheck(self, params: Params, method: str, step_s: float | None) -> str | None:
         """Why a fitting loss may no longer run this path once the parameters moved

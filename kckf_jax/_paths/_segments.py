@@ -41,7 +41,7 @@ from jaxtyping import Array, Bool
 from .._kernel import Estimate, FilterState, SensorSeries, plausible
 from .._model import structure
 from .._params import Params
-from ._base import AbstractPath, PathRun, is_traced, kalman_only
+from ._base import AbstractPath, PathCost, PathRun, is_traced, kalman_only
 from ._lanes import NO_OP_INPUTS, LaneRows, LaneState, lane_estimates, lane_inputs, lane_scan
 from ._sequential import Sequential
 
@@ -65,6 +65,8 @@ class Segments(AbstractPath):
             path against the sequential one; float64: 1e-11).
         repairs: how many repair passes to try when the check fails, before the
             sequential path (0: none).
+        gap_fraction: ``Auto`` passes this path over for rows with a stretch at least this
+            fraction of a warm-up long in which some joint has no Hall reading (``pays``).
     """
 
     name: ClassVar[str] = "segments"
@@ -75,6 +77,7 @@ class Segments(AbstractPath):
     atol_float32: float = eqx.field(static=True, default=1e-5)
     atol_float64: float = eqx.field(static=True, default=1e-11)
     repairs: int = eqx.field(static=True, default=2)
+    gap_fraction: float = eqx.field(static=True, default=0.5)
 
     def warmup(self, dtype) -> int:
         return self.warmup_float64 if jnp.dtype(dtype) == jnp.float64 else self.warmup_float32
@@ -95,14 +98,33 @@ class Segments(AbstractPath):
         return kalman_only(method)
 
     def pays(self, series: SensorSeries, dtype) -> str | None:
-        """Why ``Auto`` should not take this path for ``series`` (or ``None``)."""
+        """Why ``Auto`` should not take this path for ``series`` (or ``None``): too few
+        segments, or (concrete rows) a stretch in which some joint has no Hall reading that
+        is at least ``gap_fraction`` of a warm-up long, across which the warm-ups cannot
+        forget where they started, so the check would fail and the repair passes cost more
+        than the sequential path (``benchmarks/one_shot.py``, an hour with a 100 s dropout:
+        6.47 s for the first call and 0.61 s for the next against 2.20 and 0.45 s; gaps of
+        1,000 float32 rows anywhere passed the check at once, of 3,000 failed)."""
         shape = np.shape(series.dt)
         B, T = (shape[0], shape[1]) if len(shape) > 1 else (1, shape[0])
         n = self.segments_of(B, T, dtype)
+        W = self.warmup(dtype)
         if n < self.min_segments:
-            return (f"{T} rows make {n} segment(s) of {self.warmup(dtype)} rows or more, "
+            return (f"{T} rows make {n} segment(s) of {W} rows or more, "
                     f"fewer than {self.min_segments}")
+        if not is_traced(series):
+            gap, at = _longest_joint_gap(series.hall_v)
+            if gap >= self.gap_fraction * W:
+                return (f"some joint has no Hall reading for {gap} rows (from row {at}), "
+                        f"{self.gap_fraction:g} of a {W}-row warm-up or more: the warm-ups "
+                        "across it would not converge, and repairing them costs more than "
+                        "the sequential path")
         return None
+
+    def cost(self, n_trials: int, n_rows: int) -> PathCost:
+        """Compile 3.0 s (the first pass; a repair compiles another); 0.7 us a row:
+        ``benchmarks/one_shot.py`` (as ``Sequential.cost``: an hour 3.04 + 0.25 s)."""
+        return PathCost(3.0, 0.7e-6 * n_trials * n_rows)
 
     def run(self, params: Params, series: SensorSeries, method: str, state: FilterState
             ) -> tuple[FilterState, Estimate]:
@@ -243,6 +265,25 @@ def _split(x, B: int, S: int):
 def _lanes_first(first, x):
     """``first`` (one flag per lane) shaped to broadcast against ``x`` (lanes first)."""
     return first.reshape((-1,) + (1,) * (x.ndim - 1))
+
+
+def _longest_joint_gap(hall_v) -> tuple[int, int]:
+    """The longest run of rows in which some joint has neither of its two Hall readings
+    (columns in pairs, as ``fused_pairs`` reads them), over every trial, and the row it
+    starts at. On the host (NumPy): a recording's 8 columns of an hour take about 10 ms, where
+    a program of its own compiled 0.3 s per shape."""
+    h = np.asarray(hall_v)
+    h = h.reshape((-1,) + h.shape[-2:])
+    lost = (~np.isfinite(h)).reshape(h.shape[:2] + (-1, 2)).all(axis=-1).any(axis=-1)
+    if not lost.any():
+        return 0, 0
+    T = h.shape[1]
+    rows = np.arange(T)
+    last_ok = np.maximum.accumulate(np.where(lost, -1, rows[None, :]), axis=1)
+    run = np.where(lost, rows[None, :] - last_ok, 0)  # rows lost so far in this stretch
+    flat = int(np.argmax(run))
+    longest = int(run.reshape(-1)[flat])
+    return longest, flat % T - longest + 1
 
 
 def segment_check(entered: LaneState, ended: LaneState, B: int, S: int, atol: float

@@ -1,0 +1,91 @@
+"""What a one-shot command waits for: each path's compile and first run, and its next run, in
+a fresh process per case (no compile cache), on recorded-like data (the simulator's jittered
+stamps, 1 % of readings missing, the voltage noise model), bench robot, float32. The
+constants of ``AbstractPath.cost`` (``Auto(runs=1)``, the command's policy) come from here.
+
+    python benchmarks/one_shot.py            # every case, a table
+    python benchmarks/one_shot.py CASE PATH  # one case in this process
+
+Cases: ``hour`` (360,000 rows), ``hour_dropout`` (the same with every reading lost for 100 s),
+``trials:B:T`` (B trials of T rows).
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import kckf_jax as kk
+
+CASES = [("hour", "segments"), ("hour", "sequential"), ("hour", "auto"),
+         ("hour_dropout", "segments"), ("hour_dropout", "sequential"), ("hour_dropout", "auto"),
+         ("trials:4:10000", "lanes"), ("trials:4:10000", "sequential"),
+         ("trials:12:10000", "lanes"), ("trials:12:10000", "sequential"),
+         ("trials:64:10000", "lanes"), ("trials:64:10000", "sequential")]
+
+
+def one(case: str, path: str) -> None:
+    kk.enable_cpu_loops()
+    robot = kk.Robot.from_spec("x,y,x,y")
+    if case.startswith("hour"):
+        T = 360_000
+        s = kk.simulate(robot, "static", seed=3, duration_s=T / 100.0, drop_prob=0.01)
+        p = kk.initial_params([s], kk.FitConfig(), jnp.float32)
+        ser = kk.session_series(s, jnp.float32)
+        if case == "hour_dropout":
+            n, r0 = T // 36, T * 5 // 18
+            gyro, hall = np.array(ser.gyro), np.array(ser.hall_v)
+            gyro[r0:r0 + n] = np.nan
+            hall[r0:r0 + n] = np.nan
+            ser = kk.SensorSeries(ser.dt, jnp.asarray(gyro), jnp.asarray(hall))
+        ser, _ = kk.screened(p, ser)
+        jax.block_until_ready(ser.dt)
+        t0 = time.perf_counter()
+        est = kk.run_filter(p, ser, "kckf", path=_policy(path))[1]
+        jax.block_until_ready(est.angles)
+        t1 = time.perf_counter()
+        est = kk.run_filter(p, ser, "kckf", path=_policy(path))[1]
+        jax.block_until_ready(est.angles)
+        t2 = time.perf_counter()
+    else:  # "trials:B:T"
+        _, B, T = case.split(":")
+        B, T = int(B), int(T)
+        sess = [kk.simulate(robot, "cyclic", seed=i, duration_s=T / 100.0, drop_prob=0.01,
+                            device_seed=1) for i in range(B)]
+        p = kk.initial_params(sess, kk.FitConfig(), jnp.float32)
+        b = kk.pad_series([kk.session_series(x, np.float64) for x in sess])
+        b = jax.tree_util.tree_map(lambda x: jnp.asarray(x, jnp.float32), b)
+        b, _ = kk.screened(p, b)
+        jax.block_until_ready(b.dt)
+        t0 = time.perf_counter()
+        est = kk.filter_batch(p, b, "kckf", path=_policy(path))
+        jax.block_until_ready(est.angles)
+        t1 = time.perf_counter()
+        est = kk.filter_batch(p, b, "kckf", path=_policy(path))
+        jax.block_until_ready(est.angles)
+        t2 = time.perf_counter()
+    print(f"{case} {path}: first call {t1 - t0:.3f} s, second {t2 - t1:.3f} s, ran {est.path}")
+
+
+def _policy(path: str):
+    return kk.Auto(runs=1) if path == "auto" else path
+
+
+def main(argv: list[str]) -> int:
+    if len(argv) == 2:
+        one(*argv)
+        return 0
+    for case, path in CASES:
+        out = subprocess.run([sys.executable, __file__, case, path], capture_output=True,
+                             text=True, check=True).stdout.strip().splitlines()[-1]
+        print(out, flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
