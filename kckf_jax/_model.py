@@ -222,29 +222,57 @@ def structure(robot: Robot, method: str) -> Structure:
 def static_take(x: Array, idx, axis: int = 0, in_loop: bool = True) -> Array:
     """``x`` indexed along ``axis`` by a constant index array ``idx`` (any shape): the result
     has ``idx``'s shape in place of that axis. The one place that decides how constant indices
-    are taken:
-
-    * ``in_loop`` (a step inside a ``lax.scan``): a select against a constant mask and a sum
-      (a NaN elsewhere in ``x`` stays out), not a gather: XLA's CPU compiler (jax 0.12) keeps
-      a gather with constant indices, its transpose is a scatter, and a loop holding a scatter
-      is not compiled as one kernel (``_cpu_loops``: the sequential path's gradient ran 1.5x
-      slower); slices and a concatenation instead cost the forward step 10-15 %;
-    * ``in_loop=False`` (every row at once, outside a loop: the steady, parallel and lanes
-      layouts): a gather, which costs less there than the mask (a ``(K, n)`` select per row)
-      and compiles sooner (the suite's filter, smoother and fault tests: 103 s with the mask
-      everywhere, 93 s with gathers outside loops), its transpose outside any loop too.
+    are taken: a gather, whose derivative inside a loop (``in_loop``, a step inside a
+    ``lax.scan``) is a select against a constant mask and a sum instead of the gather's
+    transpose, a scatter: XLA's CPU compiler (jax 0.12) keeps a gather with constant indices,
+    and a loop holding its scatter is not compiled as one kernel (``_cpu_loops``: the
+    sequential path's gradient ran 1.5x slower). The forward stays a gather: the mask there
+    cost the vmapped sequential step of 64 trials 1.31x (``benchmarks/cpu_loops.py``), slices
+    and a concatenation 10-15 %. Outside loops (``in_loop=False``: every row at once, the
+    steady, parallel and lanes layouts) the gather's own transpose is kept.
     """
     idx = np.asarray(idx, dtype=np.int64)
-    if not in_loop:
-        return jnp.take(x, idx, axis=axis)
-    axis = axis % x.ndim
+    if not in_loop or not jnp.issubdtype(x.dtype, jnp.inexact):
+        return _gather(x, idx, axis % x.ndim)
+    return _loop_take(x, _Index(idx), axis % x.ndim)
+
+
+def _gather(x: Array, idx: np.ndarray, axis: int) -> Array:
+    return x[(slice(None),) * axis + (idx,)]
+
+
+class _Index:
+    """A constant index array as a static argument (hashed by its contents)."""
+
+    def __init__(self, idx: np.ndarray):
+        self.idx = idx
+        self._key = (idx.shape, idx.tobytes())
+
+    def __hash__(self) -> int:
+        return hash(self._key)
+
+    def __eq__(self, other) -> bool:
+        return isinstance(other, _Index) and self._key == other._key
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(1, 2))
+def _loop_take(x: Array, index: _Index, axis: int) -> Array:
+    return _gather(x, index.idx, axis)
+
+
+@_loop_take.defjvp
+def _loop_take_jvp(index: _Index, axis: int, primals, tangents):
+    (x,), (dx,) = primals, tangents
+    return _loop_take(x, index, axis), _masked_take(dx, index.idx, axis)
+
+
+def _masked_take(x: Array, idx: np.ndarray, axis: int) -> Array:
+    """``static_take`` as a select against a constant mask and a sum (a NaN elsewhere in
+    ``x`` stays out): linear in ``x``, and its transpose a broadcast and a select."""
     n = x.shape[axis]
     mask = idx.reshape(-1)[:, None] == np.arange(n)[None, :]  # (K, n), constant
     xm = jnp.moveaxis(x, axis, -1)[..., None, :]  # (..., 1, n)
-    if x.dtype == jnp.bool_:
-        out = jnp.any(mask & xm, axis=-1)
-    else:
-        out = jnp.sum(jnp.where(mask, xm, jnp.zeros((), x.dtype)), axis=-1)
+    out = jnp.sum(jnp.where(mask, xm, jnp.zeros((), x.dtype)), axis=-1)
     out = out.reshape(out.shape[:-1] + idx.shape)
     return jnp.moveaxis(out.reshape(x.shape[:axis] + x.shape[axis + 1:] + idx.shape),
                         tuple(range(x.ndim - 1, x.ndim - 1 + idx.ndim)),

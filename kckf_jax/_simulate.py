@@ -4,11 +4,14 @@ No public recording of the exoshell exists, so the project tests and demonstrate
 synthetic sessions. Every number below is either from a datasheet, from the KCKF paper, or an
 assumption stated as such; ``docs/simulator.md`` lists them with their sources.
 
-Kinematics follow the paper's model (Sec. 2.3 and Eq. 14): the gyroscope frames are aligned in
-the neutral pose and rotations add per axis, so link ``L`` turns at the base rate plus the rates
-of the joints below it, and the torso angle is the sum of the joint angles. (A serial chain of
-finite 3D rotations does not commute; that model error, which a real exoshell adds on top, is
-outside what the paper's filter models and is not simulated.)
+Kinematics (``kinematics``): ``"linear"`` (default) follows the paper's model (Sec. 2.3 and
+Eq. 14): the gyroscope frames are aligned in the neutral pose and rotations add per axis, so
+link ``L`` turns at the base rate plus the rates of the joints below it, and the torso angle is
+the sum of the joint angles. ``"exact"`` simulates the chain of finite rotations
+(``_rotations``): each link's gyro measures its body rate through the chain, a joint with
+several axes turns about them in the order written, and the torso truth is the intrinsic
+x-y-z Euler angles of link ``n + 1`` relative to link 1 (the session format's definition).
+Every random draw is the same for both, so a session and its linear twin differ only there.
 
 Motions (``kind``):
 
@@ -16,7 +19,12 @@ Motions (``kind``):
 * ``"static"``: the extended-use test (Sec. 4.2, Fig. 7): movement for ``move_s`` seconds, then
   the robot held still for the rest of the run (an hour in the paper);
 * ``"human"``: a person bending and extending the upper torso over a 30 deg range (Sec. 4.3),
-  with the sensor shifts at compression and over-extension the paper reports.
+  with the sensor shifts at compression and over-extension the paper reports;
+* ``"walking"``: a wearer walking: the pelvis (the base) rotating 5-8 deg about the vertical
+  with obliquity (3-5 deg) and tilt (2-4 deg) at the stride frequency (0.8-1.0 Hz), the trunk
+  circling (the torso angles reaching 34-50 deg about the circling axes, one circle in 4-6 s)
+  and twisting against the pelvis (assumptions of this project: gait pelvis ranges of that
+  size are textbook values; the circling is a motion chosen to exercise 3D joints).
 """
 
 from __future__ import annotations
@@ -29,10 +37,12 @@ import numpy as np
 from ._hall import DEG, PAPER_HALL_DEG, hall_voltage
 from ._params import hall_arrays
 from ._robot import AXES, Robot
+from ._rotations import chain_rotation, euler_body_rates, euler_xyz, link_rates
 from ._session import Session
 from ._sim_faults import Fault, inject_faults
 
-KINDS = ("cyclic", "static", "human")
+KINDS = ("cyclic", "static", "human", "walking")
+KINEMATICS = ("linear", "exact")
 DPS = DEG  # one degree per second, in rad/s
 
 
@@ -150,6 +160,56 @@ def _human(rng, robot: Robot, t: np.ndarray, rom_deg: float = 30.0):
     return theta, rate, flex
 
 
+def _walking(rng, robot: Robot, t: np.ndarray):
+    """The trunk circling over a walking pelvis: every joint axis about x or y moves the trunk
+    round a circle (x and y in quadrature, one circle in 4-6 s, the torso angle about each
+    reaching 34-50 deg, shared among the joints about that axis), every z axis twists against
+    the pelvis at the stride frequency (5-10 deg). Joint angles and rates (T, J), and the
+    stride's phase and rate (the pelvis follows it)."""
+    J = robot.n_joint_axes
+    stride = rng.uniform(0.8, 1.0)
+    pn, pn_d = _Smooth(rng, 0.01, 0.05)(t)
+    psi_s = 2 * np.pi * stride * t + 0.3 * pn  # the stride's phase
+    psi_s_d = 2 * np.pi * stride + 0.3 * pn_d
+    period = rng.uniform(4.0, 6.0)
+    psi_c = 2 * np.pi * t / period + 0.5 * pn  # the circle's phase
+    psi_c_d = 2 * np.pi / period + 0.5 * pn_d
+    total = {a: rng.uniform(34.0, 50.0) * DEG for a in ("x", "y")}
+    total["z"] = rng.uniform(5.0, 10.0) * DEG
+    shares = {}
+    for a in AXES:
+        js = [j for j, (_, b) in enumerate(robot.joint_axes) if b == a]
+        w = rng.uniform(0.6, 1.4, len(js))
+        shares.update(dict(zip(js, w / max(w.sum(), 1e-12))))
+    theta = np.zeros((t.size, J))
+    rate = np.zeros((t.size, J))
+    for j, (_, a) in enumerate(robot.joint_axes):
+        sway, sway_d = _Smooth(rng, 0.05, 0.3)(t)
+        amp = total[a] * shares[j]
+        if a == "x":
+            s, s_d = np.sin(psi_c), np.cos(psi_c) * psi_c_d
+        elif a == "y":
+            s, s_d = np.cos(psi_c), -np.sin(psi_c) * psi_c_d
+        else:
+            s, s_d = -np.sin(psi_s), -np.cos(psi_s) * psi_s_d
+        theta[:, j] = amp * s + 0.5 * DEG * sway
+        rate[:, j] = amp * s_d + 0.5 * DEG * sway_d
+    return theta, rate, (psi_s, psi_s_d)
+
+
+def _pelvis(rng, psi, psi_d):
+    """The walking pelvis's body rate (T, 3): its orientation as intrinsic x-y-z Euler angles
+    (obliquity about x and tilt about y at the stride frequency and twice it, rotation about
+    the vertical z at the stride frequency), turned into the body rate exactly."""
+    amp = np.array([rng.uniform(3.0, 5.0), rng.uniform(2.0, 4.0), rng.uniform(5.0, 8.0)]) * DEG
+    ph = rng.uniform(0, 2 * np.pi, 3)
+    mult = np.array([1.0, 2.0, 1.0])  # the tilt rocks twice a stride
+    arg = mult[None, :] * psi[:, None] + ph[None, :]
+    angles = amp * np.sin(arg)
+    rates = amp * np.cos(arg) * mult[None, :] * psi_d[:, None]
+    return euler_body_rates(angles, rates)
+
+
 def _base_motion(rng, t: np.ndarray, kind: str, flex: np.ndarray | None):
     """Orientation rate of the base link (worn low on the back), (T, 3) rad/s."""
     rate = np.zeros((t.size, 3))
@@ -175,13 +235,15 @@ def simulate(
     device_seed: int | None = None,
     true_hall_models: Mapping[str, Mapping] | None = None,
     faults: Sequence[Fault] = (),
+    kinematics: str = "linear",
 ) -> Session:
     """Simulate one recorded session of the exoshell on ``robot``.
 
     Args:
         robot: the joint layout (or a spec string like ``"x,y,x,y"``).
         kind: ``"cyclic"`` (bench gait-like test), ``"static"`` (movement for ``move_s``, then
-            held still) or ``"human"`` (bending and extension, 30 deg range).
+            held still), ``"human"`` (bending and extension, 30 deg range) or ``"walking"``
+            (the trunk circling over a walking pelvis).
         seed: seeds everything; the same arguments give the same session.
         duration_s: length of the sensor recording, s.
         config: hardware constants (default ``SimConfig()``).
@@ -193,6 +255,8 @@ def simulate(
             of random ones; for experiments with known ground-truth parameters.
         faults: sensor faults written into the finished session (``inject_faults``, seeded
             by ``seed``; none by default, and then nothing changes).
+        kinematics: ``"linear"`` (the paper's model, default) or ``"exact"`` (finite
+            rotations; the module docstring). Every random draw is the same for both.
 
     Returns:
         A ``Session`` with sensors, motion capture (own rate, own clock) and meta. The true
@@ -209,6 +273,9 @@ def simulate(
         raise ValueError(f"simulate: kind must be one of {', '.join(KINDS)}, got {kind!r}")
     if not duration_s > 0:
         raise ValueError(f"simulate: duration_s must be positive, got {duration_s}")
+    if kinematics not in KINEMATICS:
+        raise ValueError(f"simulate: kinematics must be one of {', '.join(KINEMATICS)}, got "
+                         f"{kinematics!r}")
     cfg = config or SimConfig()
     if drop_prob is not None:
         cfg = SimConfig(**{**asdict(cfg), "drop_prob": float(drop_prob)})
@@ -224,9 +291,11 @@ def simulate(
     t = np.round(np.maximum.accumulate(t), 6)  # the microcontroller stamps in microseconds
 
     # ---- joint motion (T, J): angles and rates, with a still start in the neutral pose.
-    flex = None
+    flex = stride = None
     if kind == "human":
         theta, rate, flex = _human(rng, robot, t)
+    elif kind == "walking":
+        theta, rate, stride = _walking(rng, robot, t)
     else:
         theta, rate = _cyclic(rng, robot, t)
     ramp, ramp_d = _smoothstep(t, 1.0, 2.0)  # still for 1 s, then the motion fades in
@@ -242,11 +311,19 @@ def simulate(
 
     # ---- link rates (T, n+1, 3): base rate plus the rates of the joints below (Eq. 2).
     base = _base_motion(rng, t, kind, flex)
+    if kind == "walking":
+        base = base + ramp[:, None] * _pelvis(rng, *stride)
     if kind == "static":
         base = base * (1 - _smoothstep(t, move_s, 2.0)[0])[:, None]  # the bench holds still
-    link_rate = np.repeat(base[:, None, :], robot.n_links, axis=1)
-    for j, (i, a) in enumerate(robot.joint_axes):
-        link_rate[:, i:, AXES.index(a)] += rate[:, j : j + 1]
+    if kinematics == "exact":
+        cols = [[j for j, (i, _) in enumerate(robot.joint_axes) if i == k]
+                for k in range(1, robot.n_joints + 1)]  # each joint's coordinates
+        link_rate = np.stack(link_rates(robot.joints, [theta[:, c] for c in cols],
+                                        [rate[:, c] for c in cols], base), axis=1)
+    else:
+        link_rate = np.repeat(base[:, None, :], robot.n_links, axis=1)
+        for j, (i, a) in enumerate(robot.joint_axes):
+            link_rate[:, i:, AXES.index(a)] += rate[:, j : j + 1]
 
     # ---- gyroscopes: scale error, bias (zero-rate level + warm-up drift + random walk), noise.
     shape = (robot.n_links, 3)
@@ -303,7 +380,12 @@ def simulate(
     margin = min(cfg.mocap_margin_s, 0.25 * (t[-1] - t[0]))  # short sessions keep some truth
     t_lo, t_hi = t[0] + margin, t[-1] - margin
     t_frames = np.arange(t_lo, t_hi, 1.0 / cfg.mocap_rate_hz)  # sensor time
-    angles = np.concatenate([theta, theta @ robot.torso_sum.T], axis=1)  # (T, K), phi = S theta
+    if kinematics == "exact":  # phi: the Euler angles of the chain's rotation
+        phi = euler_xyz(chain_rotation(robot.joints, [theta[:, c] for c in cols]))
+        phi = phi[:, [AXES.index(a) for a in robot.torso_axes]]
+    else:
+        phi = theta @ robot.torso_sum.T  # phi = S theta (Eq. 14)
+    angles = np.concatenate([theta, phi], axis=1)  # (T, K)
     truth = np.stack([np.interp(t_frames, t, angles[:, k]) for k in range(robot.n_angles)], 1)
     truth = truth + cfg.mocap_noise_deg * DEG * rng.standard_normal(truth.shape)
 
@@ -322,12 +404,16 @@ def simulate(
         },
         "gyro_zero_rate_rad_s": zero_rate.round(8).tolist(),
     }
+    if kinematics != "linear":
+        simulation["kinematics"] = kinematics
     session = Session(
         robot=robot, t=t, gyro=gyro.reshape(n, -1), hall_v=v,
         sample_rate_hz=cfg.sample_rate_hz,
         mocap_t=t_frames - offset, mocap=truth, mocap_time_offset_s=offset,
         hall_models=hall_models,
-        description=f"simulated {kind} session, seed {seed}, joints {robot.spec} (kckf-jax)",
+        description=(f"simulated {kind} session, seed {seed}, joints {robot.spec}"
+                     + (f", {kinematics} kinematics" if kinematics != "linear" else "")
+                     + " (kckf-jax)"),
         extra_meta={"simulation": simulation},
     )
     return inject_faults(session, faults, seed=seed) if faults else session

@@ -88,7 +88,8 @@ def cmd_simulate(args) -> int:
     faults = [Fault.parse(spec) for spec in args.fault]  # a bad spec: one line, exit 2
     session = simulate(robot, args.kind, seed=args.seed, duration_s=args.duration,
                        drop_prob=args.drop_prob, move_s=args.move,
-                       device_seed=args.device_seed, faults=faults)
+                       device_seed=args.device_seed, faults=faults,
+                       kinematics=args.kinematics)
     write_session(session, args.out)
     _say(args, f"wrote {args.out}: {session.n_steps} sensor rows, {len(session.mocap_t)} mocap "
                f"frames, joints {robot.spec}"
@@ -455,7 +456,13 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("simulate", parents=[common], help="write a synthetic session")
     s.add_argument("out", help="session folder to write")
-    s.add_argument("--kind", choices=("cyclic", "static", "human"), default="cyclic")
+    s.add_argument("--kind", choices=("cyclic", "static", "human", "walking"), default="cyclic",
+                   help="the motion (default cyclic; walking: the trunk circling over a "
+                        "walking pelvis)")
+    s.add_argument("--kinematics", choices=("linear", "exact"), default="linear",
+                   help="linear: the paper's first-order model (default; rotations add per "
+                        "axis); exact: finite rotations through the chain, the torso truth "
+                        "the x-y-z Euler angles (docs/simulator.md)")
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--duration", type=float, default=120.0, help="seconds (default 120)")
     s.add_argument("--joints", default="x,y,x,y", help="axes per joint, e.g. x,y,x,y or xyz,xyz")

@@ -28,7 +28,7 @@ def test_seeded_and_deterministic():
 
 
 @pytest.mark.parametrize("spec", ["x", "x,y,x,y", "xyz,xyz,xyz,xyz", "xz,y,xyz"])
-@pytest.mark.parametrize("kind", ["cyclic", "static", "human"])
+@pytest.mark.parametrize("kind", ["cyclic", "static", "human", "walking"])
 def test_any_layout_and_kind(spec, kind):
     robot = Robot.from_spec(spec)
     s = simulate(robot, kind, seed=1, duration_s=8.0, move_s=4.0)
@@ -129,3 +129,97 @@ def test_bad_arguments():
         simulate("x", "walk")
     with pytest.raises(ValueError, match="duration_s must be positive"):
         simulate("x", duration_s=0)
+
+
+EXACT_CLEAN = SimConfig(gyro_noise_density_dps_rthz=0.0, gyro_zero_rate_dps=0.0,
+                        gyro_temp_coeff_dps_per_c=0.0, gyro_bias_walk_dps_rts=0.0,
+                        gyro_scale_error=0.0, gyro_lsb_dps=1e-9, mocap_noise_deg=0.0,
+                        timestamp_jitter_s=0.0, mocap_rate_hz=100.0, mocap_offset_range_s=0.0)
+
+
+def _rot(axis, a):
+    """One axis rotation, written out here (independent of kckf_jax._rotations)."""
+    c, s = np.cos(a), np.sin(a)
+    return {"x": np.array([[1, 0, 0], [0, c, -s], [0, s, c]]),
+            "y": np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]]),
+            "z": np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])}[axis]
+
+
+def _orientations(robot, theta):
+    """Every link's orientation relative to link 1 (n + 1 of them), per row: the joints'
+    axis rotations multiplied in the order written."""
+    out = []
+    for row in theta:
+        Q = [np.eye(3)]
+        j = 0
+        for axes in robot.joints:
+            R = np.eye(3)
+            for a in axes:
+                R = R @ _rot(a, row[j])
+                j += 1
+            Q.append(Q[-1] @ R)
+        out.append(Q)
+    return np.array(out)  # (T, n + 1, 3, 3)
+
+
+@pytest.mark.parametrize("spec", ["xyz,xyz,xyz", "x,y,x,y", "xz,y,xyz"])
+def test_exact_kinematics_gyros_measure_the_chains_body_rates(spec):
+    """``kinematics="exact"``: each link's gyro (no bias or noise) is its body rate: the base's
+    turned into the link's frame plus the rate of its orientation relative to the base,
+    ``vee(Q^T dQ/dt)``, differentiated numerically from the joint truth; the torso truth is
+    the intrinsic x-y-z Euler angles of the chain (``R = Rx(a) Ry(b) Rz(c)``)."""
+    robot = Robot.from_spec(spec)
+    s = simulate(robot, "walking", seed=3, duration_s=6.0, config=EXACT_CLEAN,
+                 kinematics="exact")
+    theta = s.truth()[:, :robot.n_joint_axes]
+    rows = slice(200, 560)
+    Q = _orientations(robot, theta[rows])
+    dt = 0.01
+    dQ = np.gradient(Q, dt, axis=0)
+    W = np.einsum("tkji,tkjl->tkil", Q, dQ)
+    rel = np.stack([W[..., 2, 1], W[..., 0, 2], W[..., 1, 0]], axis=-1)  # (T, n + 1, 3)
+    gyro = s.gyro.reshape(len(s.t), robot.n_links, 3)[rows]
+    base = np.einsum("tkji,tj->tki", Q, gyro[:, 0])  # the base's rate in each link's frame
+    err = gyro - (base + rel)
+    assert np.abs(err[2:-2]).max() < 2e-3  # central differences of a ~1 Hz motion at 100 Hz
+    # The torso truth: the Euler angles of link n + 1 relative to link 1.
+    R = Q[:, -1]
+    a = np.arctan2(-R[:, 1, 2], R[:, 2, 2])
+    b = np.arcsin(R[:, 0, 2])
+    c = np.arctan2(-R[:, 0, 1], R[:, 0, 0])
+    euler = np.stack([a, b, c], axis=1)[:, ["xyz".index(x) for x in robot.torso_axes]]
+    phi = s.truth()[rows, robot.n_joint_axes:]
+    np.testing.assert_allclose(phi, euler, atol=1e-9)
+
+
+def test_exact_and_linear_twins_share_every_draw_and_meet_at_small_angles():
+    """A session and its linear twin differ only in the kinematics: the same joint truth and
+    Hall voltages; their gyros and torso truths differ by second-order terms, which vanish
+    with the angles (the rotation maps against the paper's sums at 1e-4 rad)."""
+    from kckf_jax._rotations import chain_rotation, euler_xyz, joint_jacobian, joint_rotation
+
+    exact = simulate("xyz,xyz,xyz", "walking", seed=5, duration_s=10.0, kinematics="exact")
+    linear = simulate("xyz,xyz,xyz", "walking", seed=5, duration_s=10.0)
+    K = exact.robot.n_joint_axes
+    np.testing.assert_array_equal(exact.hall_v, linear.hall_v)
+    np.testing.assert_array_equal(exact.mocap[:, :K], linear.mocap[:, :K])
+    assert np.abs(exact.mocap[:, K:] - linear.mocap[:, K:]).max() > 1 * DEG  # 34-50 deg motion
+    assert exact.extra_meta["simulation"]["kinematics"] == "exact"
+    assert "kinematics" not in linear.extra_meta["simulation"]
+    rng = np.random.default_rng(0)
+    small = 1e-4 * rng.standard_normal((3, 3))
+    joints = (("x", "y", "z"),) * 3
+    np.testing.assert_allclose(euler_xyz(chain_rotation(joints, list(small))), small.sum(0),
+                               atol=1e-7)
+    np.testing.assert_allclose(joint_jacobian(("x", "y", "z"), small[0]), np.eye(3), atol=2e-4)
+    np.testing.assert_allclose(joint_rotation(("x", "y", "z"), small[0]), np.eye(3), atol=2e-4)
+
+
+def test_the_command_writes_exact_sessions(tmp_path):
+    from kckf_jax.cli import main
+
+    out = tmp_path / "walk"
+    assert main(["simulate", str(out), "--kind", "walking", "--kinematics", "exact",
+                 "--joints", "xyz,xyz", "--duration", "3", "--quiet"]) == 0
+    s = read_session(out)
+    assert "exact kinematics" in s.description and s.robot.spec == "xyz,xyz"

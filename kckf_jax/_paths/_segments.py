@@ -270,14 +270,16 @@ def _lanes_first(first, x):
 def _longest_joint_gap(hall_v) -> tuple[int, int]:
     """The longest run of rows in which some joint has neither of its two Hall readings
     (columns in pairs, as ``fused_pairs`` reads them), over every trial, and the row it
-    starts at. On the host (NumPy): a recording's 8 columns of an hour take about 10 ms, where
-    a program of its own compiled 0.3 s per shape."""
+    starts at. On the host (NumPy): an hour of 8 columns takes about 5 ms, where a program of
+    its own compiled 0.3 s per shape."""
     h = np.asarray(hall_v)
-    h = h.reshape((-1,) + h.shape[-2:])
-    lost = (~np.isfinite(h)).reshape(h.shape[:2] + (-1, 2)).all(axis=-1).any(axis=-1)
+    missing = ~np.isfinite(h.reshape((-1,) + h.shape[-2:]))
+    lost = np.zeros(missing.shape[:2], bool)
+    for j in range(0, missing.shape[-1], 2):  # pair by pair (NumPy's reductions over a
+        lost |= missing[..., j] & missing[..., j + 1]  # trailing axis of 2 took 30 ms here)
     if not lost.any():
         return 0, 0
-    T = h.shape[1]
+    T = missing.shape[1]
     rows = np.arange(T)
     last_ok = np.maximum.accumulate(np.where(lost, -1, rows[None, :]), axis=1)
     run = np.where(lost, rows[None, :] - last_ok, 0)  # rows lost so far in this stretch
