@@ -12,8 +12,8 @@ The public API (everything else lives in private modules; docs/architecture.md m
   ``filter_sessions`` (recorded sessions), ``session_series``, ``session_params``,
   ``screened`` (the readings as the filter uses them, and why not: once for many runs),
   ``GapPolicy`` (what happens across a gap in the rows), ``choose_path`` and ``PathChoice``
-  (which path runs, and why), ``PathRun`` (what a path computed), ``SmootherLayout`` (how
-  the smoother lays out a batch for a path);
+  (which path runs, and why), ``PathRun`` (what a path computed), ``PathCost`` (what it
+  costs, estimated), ``SmootherLayout`` (how the smoother lays out a batch for a path);
 * offline analysis: ``smooth``, ``smooth_batch`` (the fixed-interval RTS smoother; its steady
   layout ``SteadySmoother``), ``hall_nll`` (the Hall readings' negative log-likelihood),
   ``consistency_figures`` (NIS and NEES against a consistent filter's interval);
@@ -81,6 +81,7 @@ from ._paths import Auto as Auto
 from ._paths import Lanes as Lanes
 from ._paths import Parallel as Parallel
 from ._paths import PathChoice as PathChoice
+from ._paths import PathCost as PathCost
 from ._paths import PathRun as PathRun
 from ._paths import Segments as Segments
 from ._paths import Sequential as Sequential

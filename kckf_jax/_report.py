@@ -232,3 +232,16 @@ def session_name(path: str) -> str:
 
     parts = os.path.normpath(path).split(os.sep)
     return "_".join(parts[-2:]) if len(parts) >= 2 else parts[-1]
+
+
+def jsonable(x):
+    """Plain JSON types (NumPy and JAX scalars and arrays become floats and lists)."""
+    if isinstance(x, dict):
+        return {str(k): jsonable(v) for k, v in x.items()}
+    if isinstance(x, list | tuple):
+        return [jsonable(v) for v in x]
+    if hasattr(x, "tolist"):
+        return jsonable(np.asarray(x).tolist())
+    if isinstance(x, bool | int | str | float) or x is None:
+        return x
+    return float(x)

@@ -106,9 +106,7 @@ def cmd_observability(args) -> int:
 
 
 def _one_shot():
-    """The path policy of a command that filters each recording once: compile time weighed
-    (``Auto(runs=1)``: the lanes and segments paths only where they are done sooner, their
-    compile included)."""
+    """A command filters each recording once: compile time weighed (``Auto(runs=1)``)."""
     from ._paths import Auto
 
     return Auto(runs=1)
@@ -355,28 +353,15 @@ def cmd_experiment(args) -> int:
         if args.runs < 1:
             raise UsageError(f"--runs {args.runs}: expected at least 1")
         result = markov_experiment(runs=args.runs, seed=args.seed)
-    result = _jsonable(result)
+    from ._report import jsonable
+
+    result = jsonable(result)
     if args.json:
         print(json.dumps(result))
     else:
         _say(args, json.dumps(result, indent=2))
     _say(args, f"kckf experiment {args.name}: {time.perf_counter() - t0:.1f} s")
     return 0
-
-
-def _jsonable(x):
-    """Plain JSON types (NumPy and JAX scalars and arrays become floats and lists)."""
-    import numpy as np
-
-    if isinstance(x, dict):
-        return {str(k): _jsonable(v) for k, v in x.items()}
-    if isinstance(x, list | tuple):
-        return [_jsonable(v) for v in x]
-    if hasattr(x, "tolist"):
-        return _jsonable(np.asarray(x).tolist())
-    if isinstance(x, bool | int | str | float) or x is None:
-        return x
-    return float(x)
 
 
 #: The demo's fit: fixed steps, no validation split (the test sessions stay unseen).
@@ -456,13 +441,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("simulate", parents=[common], help="write a synthetic session")
     s.add_argument("out", help="session folder to write")
-    s.add_argument("--kind", choices=("cyclic", "static", "human", "walking"), default="cyclic",
-                   help="the motion (default cyclic; walking: the trunk circling over a "
-                        "walking pelvis)")
-    s.add_argument("--kinematics", choices=("linear", "exact"), default="linear",
-                   help="linear: the paper's first-order model (default; rotations add per "
-                        "axis); exact: finite rotations through the chain, the torso truth "
-                        "the x-y-z Euler angles (docs/simulator.md)")
+    s.add_argument("--kind", choices=("cyclic", "static", "human", "walking"), default="cyclic")
+    s.add_argument("--kinematics", choices=("linear", "exact"), default="linear", help="the "
+                   "paper's linear model (default) or exact rotations (docs/simulator.md)")
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--duration", type=float, default=120.0, help="seconds (default 120)")
     s.add_argument("--joints", default="x,y,x,y", help="axes per joint, e.g. x,y,x,y or xyz,xyz")

@@ -24,6 +24,7 @@ from ._auto import Auto as Auto
 from ._base import STEP_TOL_S as STEP_TOL_S
 from ._base import AbstractPath as AbstractPath
 from ._base import PathChoice as PathChoice
+from ._base import PathCost as PathCost
 from ._base import PathRun as PathRun
 from ._base import SmootherLayout as SmootherLayout
 from ._base import is_traced as is_traced
