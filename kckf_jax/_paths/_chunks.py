@@ -14,9 +14,10 @@ a block's readings stay in cache and the Hall exponentials are computed once; it
 
 from __future__ import annotations
 
-import functools
 from dataclasses import dataclass
+from typing import NamedTuple
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -203,49 +204,60 @@ def _chunk_forward(plan: ChunkPlan, GS: Float[Array, "X O"], E: Float[Array, "Y 
     return _over_blocks(plan, block, (outs, s0, ss0))
 
 
-@functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
-def chunk_rows(plan: ChunkPlan, GS: Float[Array, "X O"], E: Float[Array, "Y Nq"],
-               Phi: Float[Array, "Nq Nq"], s0: Float[Array, "B Nq"], coeffs,
-               gyro: Float[Array, "B T G"], hall_v: Float[Array, "B T M"],
-               outs: tuple[Float[Array, "B T K"], Float[Array, "B T K"]]
+class ChunkInputs(NamedTuple):
+    """What ``chunk_rows`` maps, and is differentiated with respect to: the chunk operators
+    ``GS``, ``E``, ``Phi`` (``chunk_operator``), the prediction entering the first chunk
+    ``s0``, the Hall coefficients, the readings and the output buffers (angles, biases)."""
+
+    GS: Float[Array, "X O"]
+    E: Float[Array, "Y Nq"]
+    Phi: Float[Array, "Nq Nq"]
+    s0: Float[Array, "B Nq"]
+    coeffs: tuple
+    gyro: Float[Array, "B T G"]
+    hall_v: Float[Array, "B T M"]
+    outs: tuple[Float[Array, "B T K"], Float[Array, "B T K"]]
+
+
+def chunk_rows(plan: ChunkPlan, inputs: ChunkInputs
                ) -> tuple[tuple[Float[Array, "B T K"], Float[Array, "B T K"]],
                           Float[Array, "B Nq"]]:
-    """The converged rows of ``plan``: ``outs`` (angles, biases) with the chunk rows filled in,
-    and the prediction entering the row after the last chunk.
+    """The converged rows of ``plan``: ``inputs.outs`` (angles, biases) with the chunk rows
+    filled in, and the prediction entering the row after the last chunk.
 
     The map is linear in the readings and the entering state, so its reverse mode is the same
-    kind of computation run backwards: the cotangents of the entering states follow
-    ``a_c = a_{c+1} Phi^T + dss_c`` (``carries`` with ``Phi^T``, in reverse order), and those of
-    the readings and operators are matrix products block by block, the Hall coefficients'
-    accumulated block by block while the block is in cache. Symbolic zeros tell which inputs
-    are differentiated and which outputs carry a cotangent: a loss on the angles alone skips
-    the biases' columns, and the readings' own cotangents (full-size arrays) are formed only
-    when something differentiates with respect to the data. Left to JAX (the transposed
-    ``fori_loop``s and ``dynamic_update_slice``s), the 3D robot's fitting gradient (64 x
-    10,000 rows, float32) took 1.66 s instead of 1.06 s (docs/performance.md)."""
-    outs, s_end, _ = _chunk_forward(plan, GS, E, Phi, s0, coeffs, gyro, hall_v, outs)
+    kind of computation run backwards (``eqx.filter_custom_vjp``): the cotangents of the
+    entering states follow ``a_c = a_{c+1} Phi^T + dss_c`` (``carries`` with ``Phi^T``, in
+    reverse order), and those of the readings and operators are matrix products block by
+    block, the Hall coefficients' accumulated block by block while the block is in cache.
+    Which inputs are perturbed and which outputs carry a cotangent decide what is formed: a
+    loss on the angles alone skips the biases' columns, and the readings' own cotangents
+    (full-size arrays) are formed only when something differentiates with respect to the
+    data. Left to JAX (the transposed ``fori_loop``s and ``dynamic_update_slice``s), the 3D
+    robot's fitting gradient (64 x 10,000 rows, float32) took 1.66 s instead of 1.06 s
+    (docs/performance.md)."""
+    return _chunk_rows(inputs, plan)
+
+
+@eqx.filter_custom_vjp
+def _chunk_rows(inputs: ChunkInputs, plan: ChunkPlan):
+    outs, s_end, _ = _chunk_forward(plan, *inputs)
     return outs, s_end
 
 
-def _chunk_rows_fwd(plan, GS, E, Phi, s0, coeffs, gyro, hall_v, outs):
-    val = jax.tree_util.tree_map(lambda p: p.value, (GS, E, Phi, s0, coeffs, gyro, hall_v, outs))
-    perturbed = jax.tree_util.tree_map(lambda p: p.perturbed, (coeffs, gyro, hall_v))
-    GS, E, Phi, s0, coeffs, gyro, hall_v, outs = val
-    outs, s_end, ss = _chunk_forward(plan, GS, E, Phi, s0, coeffs, gyro, hall_v, outs, keep=True)
-    # Which inputs need a cotangent, as pytree structure (residuals hold arrays only).
-    need = tuple(() if any(jax.tree_util.tree_leaves(p)) else None for p in perturbed)
-    return (outs, s_end), (GS, E, Phi, ss, coeffs, gyro, hall_v, need)
+@_chunk_rows.def_fwd
+def _chunk_rows_fwd(perturbed: ChunkInputs, inputs: ChunkInputs, plan: ChunkPlan):
+    outs, s_end, ss = _chunk_forward(plan, *inputs, keep=True)
+    return (outs, s_end), ss
 
 
-def _is_zero(x) -> bool:
-    return isinstance(x, jax.custom_derivatives.SymbolicZero)
-
-
-def _chunk_rows_bwd(plan: ChunkPlan, res, ct):
-    GS, E, Phi, ss, coeffs, gyro, hall_v, need = res
-    want_coeffs, want_gyro, want_hall = (n is not None for n in need)
+@_chunk_rows.def_bwd
+def _chunk_rows_bwd(ss, ct, perturbed: ChunkInputs, inputs: ChunkInputs, plan: ChunkPlan):
+    GS, E, Phi, _, coeffs, gyro, hall_v, _ = inputs
+    want_coeffs, want_gyro, want_hall = (any(jax.tree_util.tree_leaves(p)) for p in (
+        perturbed.coeffs, perturbed.gyro, perturbed.hall_v))
     want_x = want_gyro or want_hall
-    douts, ds_end = ct
+    douts, ds_end = ct  # None: not differentiated
     L, K, start = plan.chunk_rows, plan.n_angles, plan.start
     n_trials, n_chunks, q = ss.shape
     n_x = GS.shape[0] - q
@@ -254,12 +266,12 @@ def _chunk_rows_bwd(plan: ChunkPlan, res, ct):
     rows = n_chunks * L
     dtype = ss.dtype
     # Only the outputs that carry a cotangent: their columns of GS (chunk-row j, output o).
-    live = [k for k, o in enumerate(douts) if not _is_zero(o)]
+    live = [k for k, o in enumerate(douts) if o is not None]
     cols = np.asarray([j * 2 * K + k * K + o for j in range(L) for k in live for o in range(K)],
                       dtype=int)
     GSl = GS[:, cols]
     Gx, Gs = GSl[:n_x], GSl[n_x:]
-    ds_end = jnp.zeros((n_trials, q), dtype) if _is_zero(ds_end) else ds_end
+    ds_end = jnp.zeros((n_trials, q), dtype) if ds_end is None else ds_end
     PhiT = Phi.T
 
     # One pass over the blocks, last first. ``a`` is the cotangent of the state entering the
@@ -308,9 +320,13 @@ def _chunk_rows_bwd(plan: ChunkPlan, res, ct):
     if want_gyro:
         dgyro = jnp.zeros_like(gyro).at[:, start:start + rows, list(plan.used)].add(dx[..., :Gu])
     # The outputs enter only as buffers whose chunk rows are overwritten.
-    douts = tuple(None if _is_zero(o) else jax.lax.dynamic_update_slice_in_dim(
+    douts = tuple(None if o is None else jax.lax.dynamic_update_slice_in_dim(
         o, jnp.zeros((n_trials, rows, K), o.dtype), start, axis=1) for o in douts)
-    return (dGS, dE, dPhi, ds0, dcoeffs if want_coeffs else None, dgyro, dhall_v, douts)
 
+    def wanted(g, p):
+        return g if any(jax.tree_util.tree_leaves(p)) else None
 
-chunk_rows.defvjp(_chunk_rows_fwd, _chunk_rows_bwd, symbolic_zeros=True)
+    return ChunkInputs(wanted(dGS, perturbed.GS), wanted(dE, perturbed.E),
+                       wanted(dPhi, perturbed.Phi), wanted(ds0, perturbed.s0),
+                       dcoeffs if want_coeffs else None, dgyro, dhall_v,
+                       tuple(wanted(d, p) for d, p in zip(douts, perturbed.outs)))

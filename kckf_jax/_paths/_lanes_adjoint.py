@@ -5,7 +5,7 @@ of the step's constant gathers, index arithmetic, zero fills and copies (x, y, x
 fusions and 17 copies in the reverse loop body against 56 fusions in the forward). The
 reverse pass is bound by kernels launched per row, not arithmetic (benchmarks/README.md,
 "where the lanes gradient's time goes"). Here ``lane_scan``'s filter is a
-``jax.custom_vjp``: the forward scan keeps every scalar update's gain (``pack_tape``: 19
+``eqx.filter_custom_vjp``: the forward scan keeps every scalar update's gain (``pack_tape``: 19
 numbers a block and row for the bench robot; the filter outputs its states anyway), and the
 reverse scan, last
 row first, applies ``lane_step_adjoint`` to them (nothing is recomputed), written out entry by
@@ -16,7 +16,7 @@ its variance.
 Exact: the same derivative as the automatic one, to rounding (``tests/test_lanes_adjoint.py``
 checks it against it, and against finite differences, in float64). Only the cotangents that
 are asked for are formed: those of the time steps and of the gyro readings only when they
-are differentiated (``symbolic_zeros``). A skipped row (its update not finite) passes its
+are differentiated (``perturbed``). A skipped row (its update not finite) passes its
 cotangents through, as the forward passes its state through.
 """
 
@@ -24,10 +24,10 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.custom_derivatives import CustomVJPPrimal, SymbolicZero
 
 from .._model import Structure
 from ._lane_step import _apply, _Consts, lane_step_adjoint
@@ -40,34 +40,27 @@ def scan_rows(st: Structure, consts: _Consts, Rm: np.ndarray, body, x0, hold0, r
     ``s``, ``valid``: every joint's fused Hall innovation and its variance, before its update)
     that ``body`` keeps; ``Rm`` maps the held gyro rates to the block rates."""
 
-    @jax.custom_vjp
-    def run(x0, hold0, rows):
-        (xT, holdT), kept = jax.lax.scan(body, (x0, hold0), rows)
+    @eqx.filter_custom_vjp
+    def run(args: _ScanArgs):
+        (xT, holdT), kept = jax.lax.scan(body, (args.x0, args.hold0), args.rows)
         return (xT, holdT), kept
 
-    def fwd(x0, hold0, rows):
-        def unwrap(tree):
-            return jax.tree_util.tree_map(lambda p: p.value, tree,
-                                          is_leaf=lambda p: isinstance(p, CustomVJPPrimal))
-
-        def perturbed(tree):
-            return any(p.perturbed for p in jax.tree_util.tree_leaves(
-                tree, is_leaf=lambda p: isinstance(p, CustomVJPPrimal)))
-
-        flags = _Wanted(perturbed(x0), perturbed(hold0), perturbed(rows.ts),
-                        perturbed(rows.gyro))
-        x0, hold0, rows = unwrap(x0), unwrap(hold0), unwrap(rows)
+    @run.def_fwd
+    def fwd(perturbed: _ScanArgs, args: _ScanArgs):
+        flags = _wanted(perturbed)
 
         def body_h(carry, row):  # the body, keeping every row's skipped flag and tape, and
             # for the derivative in the time steps its state and held rates
             new, (kept, skipped, tape) = body(carry, row, record=True)
             return new, (kept, _Tape(skipped, tape, new if flags.ts else None))
 
-        (xT, holdT), (kept, tape) = jax.lax.scan(body_h, (x0, hold0), rows)
-        return ((xT, holdT), kept), (x0, hold0, rows, tape, flags)
+        (xT, holdT), (kept, tape) = jax.lax.scan(body_h, (args.x0, args.hold0), args.rows)
+        return ((xT, holdT), kept), tape
 
-    def bwd(saved, cts):
-        x0, hold0, rows, tape_rows, flags = saved
+    @run.def_bwd
+    def bwd(tape_rows: _Tape, cts, perturbed: _ScanArgs, args: _ScanArgs):
+        x0, hold0, rows = args
+        flags = _wanted(perturbed)
         want_hold = flags.hold0 or flags.gyro
         (xT_bar, holdT_bar), kept_bar = cts
         innovations = hasattr(kept_bar, "nu")
@@ -75,17 +68,15 @@ def scan_rows(st: Structure, consts: _Consts, Rm: np.ndarray, body, x0, hold0, r
         nb = st.angle_index.shape[0]
         T = tape_rows.skipped.shape[0]
 
-        def dense(ct, like):
-            return jnp.zeros_like(like) if isinstance(ct, SymbolicZero) else ct
+        def dense(ct, like):  # None: the output is not differentiated
+            return jnp.zeros_like(like) if ct is None else ct
 
         xT_bar = dense(xT_bar, x0)
         carry = (xT_bar[:nz], xT_bar[nz:])
         if want_hold:
             carry += (dense(holdT_bar, hold0),)
         # Per row: the cotangents of (z, P), or with innovations of (nu, s).
-        per_row = tuple(None if isinstance(ct, SymbolicZero) else ct
-                        for ct in ((kept_bar.nu, kept_bar.s) if innovations
-                                   else (kept_bar.z, kept_bar.P)))
+        per_row = (kept_bar.nu, kept_bar.s) if innovations else (kept_bar.z, kept_bar.P)
 
         def before(t, x_rows, first):  # the state entering row t
             prev = jax.lax.dynamic_index_in_dim(x_rows, jnp.maximum(t - 1, 0), keepdims=False)
@@ -136,12 +127,36 @@ def scan_rows(st: Structure, consts: _Consts, Rm: np.ndarray, body, x0, hold0, r
             reverse=True)
         x0_bar = jnp.concatenate(final[:2]) if flags.x0 else None
         hold0_bar = final[2] if flags.hold0 else None
-        rows_bar = type(rows)(ts_bar, type(rows.noise)(*noise_bar), hb_bar, rb_bar, None,
-                              g_bar if flags.gyro else None)
-        return x0_bar, hold0_bar, rows_bar
+        pr = perturbed.rows
 
-    run.defvjp(fwd, bwd, symbolic_zeros=True)
-    return run(x0, hold0, rows)
+        def wanted(g, p):
+            return g if p else None
+
+        rows_bar = type(rows)(wanted(ts_bar, pr.ts),
+                              type(rows.noise)(*(wanted(g, p) for g, p in zip(noise_bar,
+                                                                               pr.noise))),
+                              wanted(hb_bar, pr.hb), wanted(rb_bar, pr.rb), None,
+                              wanted(g_bar, pr.gyro))
+        return _ScanArgs(x0_bar, hold0_bar, rows_bar)
+
+    return run(_ScanArgs(x0, hold0, rows))
+
+
+class _ScanArgs(NamedTuple):
+    """What the lanes scan is differentiated with respect to: the entering state (lanes
+    layout), the entering gyro hold and every row's inputs (``LaneInputs``)."""
+
+    x0: jax.Array
+    hold0: jax.Array
+    rows: tuple
+
+
+def _wanted(perturbed: _ScanArgs) -> _Wanted:
+    def any_of(tree) -> bool:
+        return any(jax.tree_util.tree_leaves(tree))
+
+    return _Wanted(any_of(perturbed.x0), any_of(perturbed.hold0), any_of(perturbed.rows.ts),
+                   any_of(perturbed.rows.gyro))
 
 
 class _Wanted(NamedTuple):

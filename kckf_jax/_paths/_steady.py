@@ -55,8 +55,8 @@ from ._base import (
     regular_step,
     relative_change,
 )
-from ._chunks import ChunkPlan, chunk_operator, chunk_rows, raw_readings
-from ._row_scan import row_scan
+from ._chunks import ChunkInputs, ChunkPlan, chunk_operator, chunk_rows, raw_readings
+from ._row_scan import RowMaps, row_scan
 
 
 class SteadyForm(NamedTuple):
@@ -280,7 +280,7 @@ class Steady(AbstractPath):
         g = jnp.concatenate([hold0[:, list(used)].T[None], x[:-1, :Gu]])  # previous rates
         U = (jnp.einsum("kfB,kfpa->kpaB", g, Wgs)
              + jnp.einsum("kfB,kfpa->kpaB", x[:, Gu:], Whs))  # (n_head, Nb, Nz, B)
-        Z = row_scan(As, U, jnp.moveaxis(z0, 0, -1))
+        Z = row_scan(RowMaps(As, U, jnp.moveaxis(z0, 0, -1)))
         outs = write(outs, jnp.einsum("kpaB,opa->Bko", Z, out_map_j), 0)
         z, g_prev = jnp.moveaxis(Z[-1], -1, 0), x[-1, :Gu].T
         s = entering(A, Wg, z, g_prev)
@@ -292,7 +292,8 @@ class Steady(AbstractPath):
             plan = ChunkPlan(start=first, n_chunks=n_chunks, chunk_rows=L,
                              block_rows=self._block_rows(n_trials), used=used, n_angles=K,
                              carry_group=self.carry_group, carry_scan=self.carry_scan)
-            outs, s = chunk_rows(plan, GS, E, Phi, s, coeffs, series.gyro, series.hall_v, outs)
+            outs, s = chunk_rows(plan, ChunkInputs(GS, E, Phi, s, coeffs, series.gyro,
+                                                    series.hall_v, outs))
             first = first + n_chunks * L
         x = readings(first, T - first)
         z = s.reshape(n_trials, nb, nz) + jnp.einsum("Bm,mpa->Bpa", x[:, 0, Gu:], Wh)
