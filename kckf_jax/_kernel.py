@@ -252,15 +252,26 @@ def block_inputs(params: Params, st, gyro_hold: Float[Array, " G"], inputs: Sens
     rates = block_gather(st, take(gyro_hold, plus) - take(gyro_hold, minus), in_loop)
     noise = ProcessNoise(*(block_gather(st, x, in_loop)
                            for x in q_blocks(params.q, params.angle_rw, params.bias_rw, dt)))
-    angle, r, valid = hall_measurements(params, inputs.hall_v.astype(dtype))
+    return BlockInputs(dt, rates, noise, *block_hall(params, st, inputs.hall_v.astype(dtype),
+                                                     in_loop))
+
+
+def block_hall(params: Params, st, hall_v: Float[Array, " M"], in_loop: bool = True
+               ) -> tuple[BlockHall, BlockHall, BlockValid]:
+    """One row's Hall voltages as each block joint's fused reading (rad), its variance and
+    whether it exists (``Nb x m``; a padding joint: 0, 1 and ``False``; Eqs. 1, 5, 8, 20).
+    ``in_loop``: as ``block_inputs``."""
+    angle, r, valid = hall_measurements(params, hall_v)
     h, rh, ok = fused_pairs(angle, r, valid)
     ji = st.joint_index
     pad = ji < 0
     at = np.maximum(ji, 0)
-    hb = jnp.where(pad, 0.0, take(h, at))
-    rb = jnp.where(pad, 1.0, take(rh, at))
-    vb = jnp.where(pad, False, take(ok, at))
-    return BlockInputs(dt, rates, noise, hb, rb, vb)
+
+    def take(x):
+        return static_take(x, at, in_loop=in_loop)
+
+    return (jnp.where(pad, 0.0, take(h)), jnp.where(pad, 1.0, take(rh)),
+            jnp.where(pad, False, take(ok)))
 
 
 def block_step(

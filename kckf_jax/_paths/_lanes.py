@@ -29,9 +29,8 @@ from .._kernel import (
     Estimate,
     FilterState,
     SensorSeries,
+    block_hall,
     chunked_scan,
-    fused_pairs,
-    hall_measurements,
     plausible,
 )
 from .._model import ProcessNoise, Structure, block_gather, q_blocks, structure
@@ -39,31 +38,6 @@ from .._params import Params
 from ._base import AbstractPath, PathCost, kalman_only
 from ._lane_step import _apply, _Consts, _tri, _tri_index, lane_step, pack_tape
 from ._lanes_adjoint import scan_rows
-
-
-def row_inputs(params: Params, st: Structure, dt: Float[Array, "T B"],
-               hall_v: Float[Array, "T B M"]):
-    """Every row's inputs that do not depend on the state, for all rows and trials at once:
-    the process noise ``(alpha, beta, gamma)`` (``T m1 Nb B`` each) and each block joint's
-    fused Hall reading, its variance and validity (``T m Nb B``)."""
-    noise = q_blocks(params.q, params.angle_rw, params.bias_rw, dt[..., None])  # (T, B, K)
-    laid = jax.vmap(jax.vmap(lambda x: block_gather(st, x, in_loop=False)))
-    noise = tuple(jnp.moveaxis(laid(n), 1, -1) for n in noise)  # (T, Nb, m1, B)
-
-    def hall_row(v):
-        angle, r, valid = hall_measurements(params, v)
-        h, rh, ok = fused_pairs(angle, r, valid)
-        ji = st.joint_index
-        pad = ji < 0
-        return (jnp.where(pad, 0.0, h[np.maximum(ji, 0)]),
-                jnp.where(pad, 1.0, rh[np.maximum(ji, 0)]),
-                jnp.where(pad, False, ok[np.maximum(ji, 0)]))
-
-    hb, rb, vb = (jnp.moveaxis(x, 1, -1) for x in jax.vmap(jax.vmap(hall_row))(hall_v))
-    def swap(x):  # (T, Nb, j, B) -> (T, j, Nb, B): one lane array per block coordinate
-        return jnp.swapaxes(x, 1, 2)
-
-    return tuple(swap(n) for n in noise), swap(hb), swap(rb), swap(vb)
 
 
 class LaneInputs(NamedTuple):
@@ -94,11 +68,20 @@ NO_OP_INPUTS = LaneInputs(0.0, ProcessNoise(0.0, 0.0, 0.0), 0.0, 1.0, False, jnp
 
 def lane_inputs(params: Params, st: Structure, dt: Float[Array, "B T"],
                 gyro: Float[Array, "B T G"], hall_v: Float[Array, "B T M"]) -> LaneInputs:
-    """Every row's inputs to the lanes scans (``row_inputs``' terms), rows first and trials
-    last."""
-    noise, hb, rb, vb = row_inputs(params, st, jnp.moveaxis(dt, 0, 1),
-                                   jnp.moveaxis(hall_v, 0, 1))
-    return LaneInputs(jnp.moveaxis(dt, 0, 1), ProcessNoise(*noise), hb, rb, vb,
+    """Every row's inputs to the lanes scans that do not depend on the state, for all rows and
+    trials at once, rows first and trials last: the process noise and each block joint's
+    fused Hall reading, its variance and validity (the kernel's ``block_inputs`` terms, every
+    row laid out outside the loop)."""
+    ts = jnp.moveaxis(dt, 0, 1)
+    laid = jax.vmap(jax.vmap(lambda x: block_gather(st, x, in_loop=False)))
+    hall = jax.vmap(jax.vmap(lambda v: block_hall(params, st, v, in_loop=False)))
+
+    def lanes(x):  # (T, B, Nb, j) -> (T, j, Nb, B): one lane array per block coordinate
+        return jnp.moveaxis(x, (1, 2, 3), (3, 2, 1))
+
+    noise = q_blocks(params.q, params.angle_rw, params.bias_rw, ts[..., None])  # (T, B, K)
+    hb, rb, vb = (lanes(x) for x in hall(jnp.moveaxis(hall_v, 0, 1)))
+    return LaneInputs(ts, ProcessNoise(*(lanes(laid(n)) for n in noise)), hb, rb, vb,
                       jnp.moveaxis(gyro, (0, 1, 2), (2, 0, 1)))
 
 
