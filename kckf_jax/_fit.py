@@ -25,7 +25,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float
 
 from ._gaps import GapPolicy
-from ._kernel import SensorSeries, init_state, pad_series
+from ._kernel import KALMAN_METHODS, SensorSeries, init_state, pad_series
 from ._likelihood import hall_nll
 from ._params import _LEAVES, Params, with_floors
 from ._paths import AbstractPath, Auto, Sequential, as_path, regular_step
@@ -305,7 +305,7 @@ class FitConfig:
         remat_chunk: chunk length for checkpointing the scan (default: about sqrt(T)).
         checkpoint_every: steps between checkpoints (when a checkpoint path is given).
         seed: makes minibatch draws deterministic.
-        method: the filter to fit (``"kckf"`` or ``"kf"``).
+        method: the filter to fit (``"kckf"``, ``"kf"`` or ``"kckf3d"``).
         loss: ``"rmse"`` (the mean RMSE against motion capture), ``"nll"`` (the negative
             log-likelihood of the Hall readings: no motion capture needed) or ``"rmse+nll"``.
         nll_weight: ``rmse+nll``'s weight on the likelihood, in deg of RMSE per nat per
@@ -333,8 +333,9 @@ class FitConfig:
         if unknown:
             raise ValueError(f"FitConfig.freeze: unknown leaf {unknown[0]!r}; expected names "
                              f"from {', '.join(_LEAVES)}")
-        if self.method not in ("kckf", "kf"):
-            raise ValueError(f"FitConfig.method: expected 'kckf' or 'kf', got {self.method!r}")
+        if self.method not in KALMAN_METHODS:
+            raise ValueError(f"FitConfig.method: expected one of {', '.join(KALMAN_METHODS)}, "
+                             f"got {self.method!r}")
         if self.loss not in LOSSES:
             raise ValueError(f"FitConfig.loss: expected one of {', '.join(LOSSES)}, got "
                              f"{self.loss!r}")

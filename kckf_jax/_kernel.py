@@ -12,7 +12,10 @@ Methods:
 * ``"kf"``: the same filter without the constraint (the paper's "Std KF");
 * ``"gyro"``: integrated gyro differences (Eq. 2), from zero (the neutral pose);
 * ``"hall_l"``, ``"hall_r"``: one side's Hall sensor alone through Eq. 1 (a missing reading
-  holds the last one); they give no torso angle.
+  holds the last one); they give no torso angle;
+* ``"kckf3d"``: the KCKF on the chain's exact kinematics (finite rotations: ``_exact.py``),
+  for robots that turn about more than one axis; to first order in the angles it is
+  ``"kckf"``.
 
 Conventions shared with the NumPy reference in ``tests/``:
 
@@ -47,6 +50,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
+from . import _exact
 from ._custom_types import BlockCov, BlockHall, BlockRates, BlockState, BlockValid
 from ._hall import hall_angle, hall_slope
 from ._health import screened_series
@@ -64,7 +68,9 @@ from ._model import (
 from ._params import Params
 from ._screen import screen
 
-METHODS = ("kckf", "kf", "gyro", "hall_l", "hall_r")
+METHODS = ("kckf", "kf", "gyro", "hall_l", "hall_r", "kckf3d")
+#: The Kalman methods: a covariance, a likelihood, a smoother.
+KALMAN_METHODS = (*FILTER_METHODS, "kckf3d")
 
 
 class SensorSeries(eqx.Module):
@@ -166,6 +172,10 @@ def init_state(params: Params, method: str = "kckf") -> FilterState:
     if method in FILTER_METHODS:
         st = structure(robot, method)
         P0 = initial_covariance(st, params)
+        return FilterState(jnp.zeros(P0.shape[:2], dtype), P0, hold)
+    if method == "kckf3d":
+        P0 = _exact.initial_covariance(_exact.exact_model(robot), params.p0_angle,
+                                       params.p0_bias)[None].astype(dtype)
         return FilterState(jnp.zeros(P0.shape[:2], dtype), P0, hold)
     n = robot.n_angles if method == "gyro" else robot.n_joint_axes
     z0 = jnp.zeros(n, dtype) if method == "gyro" else jnp.full(n, jnp.nan, dtype)
@@ -366,16 +376,23 @@ class StepMoments(eqx.Module):
     valid: Bool[Array, "*T Nb m"]
     dt: Float[Array, "*T"]
     skipped: Bool[Array, "*T"]
+    #: The Jacobian of ``y`` in the previous row's ``z`` (``kckf3d``, whose model depends on
+    #: the state); ``None`` for the linear methods, whose map is ``Structure``'s.
+    F: Float[Array, "*T Nb Ny Nz"] | None = None
 
 
 def kalman_step_moments(params: Params, state: FilterState, inputs: SensorSeries,
                         method: str) -> tuple[FilterState, Estimate, StepMoments]:
-    """``step`` of a Kalman method (``"kckf"``, ``"kf"``), and its ``StepMoments``."""
+    """``step`` of a Kalman method (``KALMAN_METHODS``), and its ``StepMoments``."""
     inputs = plausible(params, inputs)
-    st = structure(params.robot, method)
-    dt, rates, noise, hb, rb, vb = block_inputs(params, st, state.gyro_hold, inputs)
-    z, P, y, S, nu, s = jax.vmap(lambda *a: block_step(st, *a, dt))(
-        state.z, state.P, rates, *noise, hb, rb, vb)
+    F = None
+    if method == "kckf3d":
+        z, P, y, S, F, nu, s, vb, dt = _exact_parts(params, state, inputs)
+    else:
+        st = structure(params.robot, method)
+        dt, rates, noise, hb, rb, vb = block_inputs(params, st, state.gyro_hold, inputs)
+        z, P, y, S, nu, s = jax.vmap(lambda *a: block_step(st, *a, dt))(
+            state.z, state.P, rates, *noise, hb, rb, vb)
     gyro = inputs.gyro.astype(state.z.dtype)
     hold = jnp.where(jnp.isfinite(gyro), gyro, state.gyro_hold)
     # An update that is not finite (a time step so long that the prediction overflows) is
@@ -383,9 +400,27 @@ def kalman_step_moments(params: Params, state: FilterState, inputs: SensorSeries
     ok = jnp.isfinite(z).all() & jnp.isfinite(P).all()
     new = jax.tree_util.tree_map(lambda a, b: jnp.where(ok, a, b), FilterState(z, P, hold),
                                  state)
-    est = block_estimate(st, new.z, new.P)
+    est = (exact_block_estimate(params.robot, new.z, new.P) if method == "kckf3d"
+           else block_estimate(st, new.z, new.P))
     return new, dataclasses.replace(est, skipped=~ok), StepMoments(y, S, nu, s, vb & ok, dt,
-                                                                   ~ok)
+                                                                   ~ok, F)
+
+
+def _exact_parts(params: Params, state: FilterState, inputs: SensorSeries):
+    """One ``kckf3d`` step (``_exact.exact_step``) laid out as one block (``Nb = 1``)."""
+    dtype = state.z.dtype
+    model = _exact.exact_model(params.robot)
+    dt = inputs.dt.astype(dtype)
+    noise = ProcessNoise(*q_blocks(params.q, params.angle_rw, params.bias_rw, dt))
+    h, rh, vh = fused_pairs(*hall_measurements(params, inputs.hall_v.astype(dtype)))
+    z, P, y, S, F, nu, s = _exact.exact_step(model, state.z[0], state.P[0], state.gyro_hold,
+                                             noise, h, rh, vh, dt)
+    return z[None], P[None], y[None], S[None], F[None], nu[None], s[None], vh[None], dt
+
+
+def exact_block_estimate(robot, z: BlockState, P: BlockCov) -> Estimate:
+    """``kckf3d``'s estimate from its one-block state (``_exact.exact_estimate``)."""
+    return Estimate(*_exact.exact_estimate(_exact.exact_model(robot), z[0], P[0]))
 
 
 def _kalman_step(params: Params, state: FilterState, inputs: SensorSeries, method: str):
@@ -421,7 +456,7 @@ def step(
     ``SensorSeries``; a reading outside ``params.limits`` counts as missing.
     """
     check_method(method)
-    if method in FILTER_METHODS:
+    if method in KALMAN_METHODS:
         return _kalman_step(params, state, inputs, method)
     return _baseline_step(params, state, plausible(params, inputs), method)
 

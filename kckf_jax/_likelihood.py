@@ -92,7 +92,7 @@ def hall_nll(params: Params, series: SensorSeries, method: str = "kckf",
     # Screened once (``plausible``: the readings the filter uses), for both kinds of term.
     batch = plausible(params, jax.tree_util.tree_map(
         lambda x: x.astype(params.log_q.dtype), batch))
-    if as_path(path).batch_layout(batch.dt.shape[0]) == "lanes":
+    if as_path(path).batch_layout(batch.dt.shape[0], method) == "lanes":
         nu, s, valid = lane_innovations(params, batch, method)
     else:
         nu, s, valid = jax.vmap(lambda x: innovations(params, x, method))(batch)

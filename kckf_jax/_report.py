@@ -15,9 +15,9 @@ import numpy as np
 
 from ._gaps import GapPolicy, find_gaps
 from ._gaps import describe as describe_gaps
+from ._kernel import KALMAN_METHODS
 from ._likelihood import consistency, innovations
 from ._metrics import rmse_table
-from ._model import FILTER_METHODS
 from ._params import Params
 from ._paths import AbstractPath
 from ._run import filter_sessions, series_faults, session_params, session_series
@@ -151,7 +151,7 @@ def evaluate_sessions(sessions: Sequence[Session], methods: Sequence[str],
     faults, warnings = data_faults(sessions, params, gaps)
     out, angles, nis_rows = {}, {}, {}
     for m in methods:
-        kalman = m in FILTER_METHODS
+        kalman = m in KALMAN_METHODS
         est = filter_sessions(sessions, m, params, gaps=gaps, smooth=smooth and kalman,
                               path=path)
         angles[m] = [e.angles for e in est]

@@ -20,13 +20,16 @@ from jaxtyping import Array, Bool, Float
 from ._kalman import cholesky_solve, symmetrise
 
 
-def rts_gain(st, P_f: Float[Array, "Nz Nz"], S: Float[Array, "Ny Ny"], dt: Float[Array, ""]
+def rts_gain(st, P_f: Float[Array, "Nz Nz"], S: Float[Array, "Ny Ny"], dt: Float[Array, ""],
+             F: Float[Array, "Ny Nz"] | None = None
              ) -> tuple[Float[Array, "Nz Ny"], Bool[Array, " Ny"], Float[Array, "Ny Ny"]]:
     """The smoother gain ``G = P F' S^-1`` of one block (its unused columns zero), which rows of
-    ``y`` are used, and ``S`` with the unused rows and columns replaced by the identity."""
+    ``y`` are used, and ``S`` with the unused rows and columns replaced by the identity.
+    ``F``: the step's map (default the structure's, ``F0 + dt F1``)."""
     nz = st.n_z
     dtype = P_f.dtype
-    F = jnp.asarray(st.F0, dtype) + dt * jnp.asarray(st.F1, dtype)  # (Ny, Nz)
+    if F is None:
+        F = jnp.asarray(st.F0, dtype) + dt * jnp.asarray(st.F1, dtype)  # (Ny, Nz)
     # Rows of y the next row's update conditioned on: every z coordinate with variance, and
     # the constraint where there was a time step.
     use = jnp.concatenate([jnp.diag(S)[:nz] > 0, jnp.full(st.n_e, dt > 0)])
@@ -43,12 +46,12 @@ def rts_covariance(st, P_f, G, use, S, P_s):
     return symmetrise(P_f + G @ D @ G.T)
 
 
-def rts_block(st, z_f, P_f, y_pred, S, dt, skipped, z_s, P_s):
+def rts_block(st, z_f, P_f, y_pred, S, dt, skipped, z_s, P_s, F=None):
     """One block of one backward step: the smoothed ``(z, P)`` of row ``k`` from the filtered
-    one (``z_f, P_f``), the next row's predicted moments (``y_pred, S``, ``dt``, ``skipped``)
-    and its smoothed one (``z_s, P_s``). A skipped next row kept the state, so this row's
-    smoothed state is the next one's."""
-    G, use, Sm = rts_gain(st, P_f, S, dt)
+    one (``z_f, P_f``), the next row's predicted moments (``y_pred, S``, ``dt``, ``skipped``,
+    and its map ``F`` where the step brings one) and its smoothed one (``z_s, P_s``). A skipped
+    next row kept the state, so this row's smoothed state is the next one's."""
+    G, use, Sm = rts_gain(st, P_f, S, dt, F)
     y_s = jnp.concatenate([z_s, jnp.zeros(st.n_e, z_f.dtype)])
     z = z_f + G @ jnp.where(use, y_s - y_pred, 0.0)
     P = rts_covariance(st, P_f, G, use, Sm, P_s)
@@ -58,18 +61,19 @@ def rts_block(st, z_f, P_f, y_pred, S, dt, skipped, z_s, P_s):
 def rts_rows(st, zs: Float[Array, "R Nb Nz"], Ps: Float[Array, "R Nb Nz Nz"],
              y_next: Float[Array, "R Nb Ny"], S_next: Float[Array, "R Nb Ny Ny"],
              dt_next: Float[Array, " R"], skip_next: Bool[Array, " R"],
-             end: tuple[Float[Array, "Nb Nz"], Float[Array, "Nb Nz Nz"]]):
+             end: tuple[Float[Array, "Nb Nz"], Float[Array, "Nb Nz Nz"]],
+             F_next: Float[Array, "R Nb Ny Nz"] | None = None):
     """The backward pass over rows ``R``: each row's filtered moments ``zs, Ps`` and the
     predicted moments of the row after it (``y_next, S_next, dt_next, skip_next``, aligned with
-    it); ``end`` the smoothed ``(z, P)`` of the row after the last. Returns the smoothed block
-    states and covariances of every row."""
+    it, and its maps ``F_next`` where the steps bring them); ``end`` the smoothed ``(z, P)`` of
+    the row after the last. Returns the smoothed block states and covariances of every row."""
     def body(carry, row):
         z_s, P_s = carry
-        z_f, P_f, y, S, dt, skip = row
+        z_f, P_f, y, S, dt, skip, F = row
         z, P = jax.vmap(lambda *a: rts_block(st, *a))(
             z_f, P_f, y, S, jnp.broadcast_to(dt, z_f.shape[:1]),
-            jnp.broadcast_to(skip, z_f.shape[:1]), z_s, P_s)
+            jnp.broadcast_to(skip, z_f.shape[:1]), z_s, P_s, F)
         return (z, P), (z, P)
 
-    rows = (zs, Ps, y_next, S_next, dt_next, skip_next)
+    rows = (zs, Ps, y_next, S_next, dt_next, skip_next, F_next)
     return jax.lax.scan(jax.checkpoint(body), end, rows, reverse=True)[1]

@@ -25,19 +25,22 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from ._exact import exact_model
 from ._kernel import (
+    KALMAN_METHODS,
     Estimate,
     FilterState,
     SensorSeries,
     StepMoments,
     block_estimate,
     check_method,
+    exact_block_estimate,
     init_state,
     init_states,
     kalman_step_moments,
     plausible,
 )
-from ._model import FILTER_METHODS, structure
+from ._model import structure
 from ._params import Params
 from ._paths import AbstractPath, SmootherLayout, as_path, is_traced
 from ._paths._lanes_smooth import lane_smooth
@@ -66,18 +69,24 @@ def filter_moments(params: Params, series: SensorSeries, method: str,
 
 def rts(params: Params, method: str, zs, Ps, mom: StepMoments):
     """The backward pass over the forward pass's rows: the smoothed block states and
-    covariances per row (the last row's are its filtered ones)."""
-    st = structure(params.robot, method)
+    covariances per row (the last row's are its filtered ones). ``kckf3d``'s steps bring
+    their own maps (``StepMoments.F``: the model linearised at each filtered state, the
+    extended RTS smoother)."""
+    st = exact_model(params.robot) if method == "kckf3d" else structure(params.robot, method)
+    F = None if mom.F is None else mom.F[1:]
     z, P = rts_rows(st, zs[:-1], Ps[:-1], mom.y[1:], mom.S[1:], mom.dt[1:], mom.skipped[1:],
-                    (zs[-1], Ps[-1]))
+                    (zs[-1], Ps[-1]), F)
     return jnp.concatenate([z, zs[-1:]]), jnp.concatenate([P, Ps[-1:]])
 
 
 def _smoothed(params: Params, series: SensorSeries, method: str, state: FilterState | None):
     _, zs, Ps, mom = filter_moments(params, series, method, state)
     z, P = rts(params, method, zs, Ps, mom)
-    st = structure(params.robot, method)
-    est = jax.vmap(lambda a, b: block_estimate(st, a, b))(z, P)
+    if method == "kckf3d":
+        est = jax.vmap(lambda a, b: exact_block_estimate(params.robot, a, b))(z, P)
+    else:
+        st = structure(params.robot, method)
+        est = jax.vmap(lambda a, b: block_estimate(st, a, b))(z, P)
     return dataclasses.replace(est, skipped=mom.skipped)
 
 
@@ -161,8 +170,9 @@ def _smooth_path(params: Params, series: SensorSeries, method: str,
 
 def _check(method: str) -> None:
     check_method(method)
-    if method not in FILTER_METHODS:
-        raise ValueError(f"smoothing needs a Kalman filter (kckf or kf), got {method!r}")
+    if method not in KALMAN_METHODS:
+        raise ValueError(f"smoothing needs a Kalman filter ({', '.join(KALMAN_METHODS)}), got "
+                         f"{method!r}")
 
 
 @eqx.filter_jit

@@ -11,7 +11,7 @@ import numpy as np
 
 from .._kernel import Estimate, FilterState, SensorSeries
 from .._params import Params
-from ._base import AbstractPath, PathChoice, PathRun, SmootherLayout, is_traced
+from ._base import AbstractPath, PathChoice, PathRun, SmootherLayout, is_traced, kalman_only
 from ._lanes import Lanes
 from ._parallel import Parallel
 from ._segments import Segments
@@ -86,9 +86,11 @@ class Auto(AbstractPath):
         return Auto(steady=self.steady, lanes=lanes, segments=None,
                     sequential=Sequential(remat_chunk), before=self.before)
 
-    def batch_layout(self, n_trials: int) -> str:
-        """``"lanes"`` for ``lanes.min_trials`` trials or more, else ``"sequential"``."""
-        return "lanes" if n_trials >= self.lanes.min_trials else "sequential"
+    def batch_layout(self, n_trials: int, method: str = "kckf") -> str:
+        """``"lanes"`` for ``lanes.min_trials`` trials or more of a method the lanes compute,
+        else ``"sequential"``."""
+        return ("lanes" if n_trials >= self.lanes.min_trials and kalman_only(method) is None
+                else "sequential")
 
     def smoother_layout(self, params: Params, series: SensorSeries, method: str
                         ) -> SmootherLayout:
@@ -97,7 +99,7 @@ class Auto(AbstractPath):
         if not is_traced(params, series):
             if SteadySmoother(steady=self.steady).applies(params, series, method) is None:
                 return SmootherLayout("steady", self.steady, checked=True)
-        return SmootherLayout(self.batch_layout(int(np.shape(series.dt)[0])))
+        return SmootherLayout(self.batch_layout(int(np.shape(series.dt)[0]), method))
 
     def choose(self, params: Params, series: SensorSeries, method: str,
                state: FilterState | None = None) -> PathChoice:

@@ -34,7 +34,11 @@ STEP_TOL_S = 1e-9
 
 
 def kalman_only(method: str) -> str | None:
-    """Why a path that computes a Kalman filter does not apply to ``method`` (or ``None``)."""
+    """Why a path that computes the linear Kalman filters (a fixed block structure, the
+    steps' maps known before the data) does not apply to ``method`` (or ``None``)."""
+    if method == "kckf3d":
+        return ("the exact model's matrices depend on the state (kckf3d linearises every "
+                "step at its estimate): no layout precomputes them; sequential only")
     return None if method in FILTER_METHODS else f"method {method!r} is not a Kalman filter"
 
 
@@ -125,17 +129,17 @@ class AbstractPath(eqx.Module):
         final, est = _compiled_run(self, params, series, method, state)
         return PathRun(final, est, self)
 
-    def batch_layout(self, n_trials: int) -> str:
+    def batch_layout(self, n_trials: int, method: str = "kckf") -> str:
         """How the likelihood's innovations and the smoother lay out a batch of ``n_trials``
-        for this path: ``"lanes"`` (the trials as the last axis) or ``"sequential"`` (a
-        ``vmap`` of the one-trial scan)."""
+        for this path and ``method``: ``"lanes"`` (the trials as the last axis) or
+        ``"sequential"`` (a ``vmap`` of the one-trial scan)."""
         return "sequential"
 
     def smoother_layout(self, params: Params, series: SensorSeries, method: str
                         ) -> SmootherLayout:
         """The smoother's layout for this path on ``series`` (``smooth_batch``): by default
         ``batch_layout``'s."""
-        return SmootherLayout(self.batch_layout(int(np.shape(series.dt)[0])))
+        return SmootherLayout(self.batch_layout(int(np.shape(series.dt)[0]), method))
 
     def cost(self, n_trials: int, n_rows: int) -> PathCost | None:
         """What filtering ``n_trials`` trials of ``n_rows`` rows on this path costs, estimated

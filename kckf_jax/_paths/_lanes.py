@@ -306,7 +306,10 @@ class Lanes(AbstractPath):
                 state: FilterState | None = None) -> str | None:
         return kalman_only(method)
 
-    def batch_layout(self, n_trials: int) -> str:
+    def batch_layout(self, n_trials: int, method: str = "kckf") -> str:
+        why = kalman_only(method)
+        if why is not None:
+            raise ValueError(f"the lanes path does not apply: {why}")
         return "lanes"
 
     def cost(self, n_trials: int, n_rows: int) -> PathCost:

@@ -1,0 +1,130 @@
+"""The rotation-aware KCKF (``kckf3d``) against its independent NumPy reference, against the
+linear KCKF at small angles, on exact-rotation data, and the paths' answers for it (what else
+it works with: ``test_exact_uses.py``)."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from helpers import joints_of, random_params, random_recording, reference_params
+from helpers import series_of as make_series
+from reference_exact import Exact, reference_exact_filter
+
+from kckf_jax import (
+    Auto,
+    Lanes,
+    Params,
+    Robot,
+    choose_path,
+    filter_batch,
+    filter_sessions,
+    pad_series,
+    rmse_table,
+    run_filter,
+    simulate,
+)
+from kckf_jax._hall import hall_voltage
+from kckf_jax._rotations import link_rates
+
+
+@pytest.mark.parametrize(("seed", "spec", "noise"), [
+    (0, "xyz,xyz,xyz", "angle"), (1, "x,y,x,y", "voltage"), (2, "xy,z", "angle"),
+    (3, "yz,x,xz", "voltage")])
+def test_matches_numpy_reference(seed, spec, noise):
+    """Irregular time steps, 10 % missing readings, random parameters: 1e-8 rad."""
+    rng = np.random.default_rng(seed)
+    robot = Robot.from_spec(spec)
+    params = random_params(rng, robot, hall_noise=noise)
+    t, gyro, hall_v = random_recording(rng, robot, T=60)
+    ref = reference_exact_filter(joints_of(robot), t, gyro, hall_v, reference_params(params))
+    final, est = run_filter(params, make_series(t, gyro, hall_v), "kckf3d")
+    assert np.abs(ref["angles"]).max() > 0.1  # angles where the rotations matter
+    np.testing.assert_allclose(est.angles, ref["angles"], atol=1e-8, rtol=0)
+    np.testing.assert_allclose(est.bias, ref["bias"], atol=1e-8, rtol=0)
+    np.testing.assert_allclose(final.z[0], ref["z"], atol=1e-8, rtol=0)
+    np.testing.assert_allclose(final.P[0], ref["P"], atol=1e-12, rtol=1e-6)
+
+
+def _small_motion(robot, eps, T=600, seed=0):
+    """Noise-free readings of a chain moving by ``eps`` rad (exact kinematics): joint angles,
+    gyros from the exact link rates, Hall voltages through Eq. 1's inverse at the paper's
+    curve."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(T) * 0.01
+    f = rng.uniform(0.3, 1.2, (robot.n_joint_axes, 1))
+    ph = rng.uniform(0, 2 * np.pi, (robot.n_joint_axes, 1))
+    theta = (eps * np.sin(2 * np.pi * f * t + ph)).T
+    rate = (eps * 2 * np.pi * f * np.cos(2 * np.pi * f * t + ph)).T
+    base = eps * np.stack([np.sin(t), np.cos(1.3 * t), np.sin(0.7 * t)], 1)
+    model = Exact(joints_of(robot))
+    gyro = np.concatenate(link_rates(robot.joints, [theta[:, s] for s in model.sl],
+                                     [rate[:, s] for s in model.sl], base), axis=1)
+    params = Params.paper_defaults(robot, dtype=jnp.float64)
+    a, b, c, d, sign = (np.asarray(x) for x in params.hall_coeffs)
+    deg = np.degrees(theta[:, robot.hall_joint_axis])
+    hall_v = hall_voltage(deg, np.degrees(a), b, np.degrees(c), d, sign)
+    return params, make_series(t, gyro, hall_v)
+
+
+@pytest.mark.parametrize("spec", ["xyz,xyz,xyz", "x,y,x,y", "x,x"])
+def test_equals_the_linear_kckf_to_first_order(spec):
+    """The two filters differ by the square of the motion: 10x smaller angles, about 100x
+    closer estimates (so the exact filter is the paper's to first order)."""
+    robot = Robot.from_spec(spec)
+    gaps = []
+    for eps in (0.02, 0.002):
+        params, series = _small_motion(robot, eps)
+        lin = np.asarray(run_filter(params, series, "kckf")[1].angles)
+        ex = np.asarray(run_filter(params, series, "kckf3d")[1].angles)
+        assert np.abs(lin).max() > 0.5 * eps
+        gaps.append(np.abs(ex - lin).max())
+    assert gaps[1] < 1e-3 * 0.002 or gaps[0] / gaps[1] > 50, gaps
+
+
+def test_single_axis_chain_is_the_paper_exactly():
+    """One joint: its Euler angle is its coordinate and its rate the gyros' difference, so
+    ``kckf3d`` is ``kckf`` to rounding."""
+    rng = np.random.default_rng(4)
+    robot = Robot.from_spec("y")
+    params = random_params(rng, robot)
+    series = make_series(*random_recording(rng, robot, T=200))
+    a = run_filter(params, series, "kckf")[1]
+    b = run_filter(params, series, "kckf3d")[1]
+    np.testing.assert_allclose(b.angles, a.angles, atol=1e-12)
+    np.testing.assert_allclose(b.angle_std, a.angle_std, atol=1e-12)
+
+
+@pytest.fixture(scope="module")
+def walking():
+    return [simulate("xyz,xyz,xyz", "walking", seed=s, duration_s=20.0, drop_prob=0.01,
+                     kinematics="exact") for s in (5, 6)]
+
+
+def test_exact_data_the_exact_filter_wins_and_torso_is_the_chain(walking):
+    """On exact-rotation walking sessions the exact filter beats the linear one, and its
+    torso angles are the Euler angles of its joints' chain at every row."""
+    params = Params.paper_defaults(walking[0].robot)
+    lin = rmse_table(walking, [e.angles for e in filter_sessions(walking, "kckf", params)])
+    est = filter_sessions(walking, "kckf3d", params)
+    ex = rmse_table(walking, [e.angles for e in est])
+    assert ex["mean_rmse_deg"] < 0.7 * lin["mean_rmse_deg"], (ex, lin)
+    model = Exact(joints_of(walking[0].robot))
+    a = np.asarray(est[0].angles, np.float64)
+    for k in range(0, a.shape[0], 97):
+        np.testing.assert_allclose(a[k, 9:], model.torso_angles(a[k, :9]), atol=2e-5)
+
+
+def test_paths_say_why_not_and_the_batch_runs_sequential(walking):
+    params = Params.paper_defaults(walking[0].robot, dtype=jnp.float64)
+    series = pad_series([make_series(s.t, s.gyro, s.hall_v) for s in walking] * 6)
+    choice = choose_path(params, series, "kckf3d", Auto())
+    assert choice.path.name == "sequential"
+    for name in ("lanes", "segments", "steady"):
+        assert "depend on the state" in choice.passed_over[name], choice.passed_over
+    with pytest.raises(ValueError, match="lanes.* does not apply: the exact model"):
+        filter_batch(params, series, "kckf3d", Lanes(min_trials=1))
+    one = run_filter(params, jax.tree_util.tree_map(lambda x: x[1], series), "kckf3d")[1]
+    batch = filter_batch(params, series, "kckf3d")
+    np.testing.assert_allclose(batch.angles[1], one.angles, atol=1e-12)

@@ -1,0 +1,110 @@
+"""The rotation-aware KCKF (``kckf3d``) with what else the package does: the smoother, float32,
+the fit, the stream and the exported step (its equations: ``test_exact.py``)."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from helpers import joints_of
+from helpers import series_of as make_series
+from reference_exact import Exact
+
+from kckf_jax import (
+    FitConfig,
+    PacketParser,
+    Params,
+    StreamingFilter,
+    fit,
+    run_filter,
+    simulate,
+    smooth,
+    write_session,
+)
+
+
+@pytest.fixture(scope="module")
+def walking():
+    return [simulate("xyz,xyz,xyz", "walking", seed=s, duration_s=12.0, drop_prob=0.01,
+                     kinematics="exact") for s in (5, 6)]
+
+
+def test_smoother_ends_on_the_filter_and_keeps_the_chain(walking):
+    s = walking[0]
+    params = Params.paper_defaults(s.robot, dtype=jnp.float64)
+    series = make_series(s.t, s.gyro, s.hall_v)
+    filt = run_filter(params, series, "kckf3d")[1]
+    sm = smooth(params, series, "kckf3d")
+    np.testing.assert_allclose(sm.angles[-1], filt.angles[-1], atol=1e-12)
+    assert np.all(np.asarray(sm.angle_std) <= np.asarray(filt.angle_std) + 1e-12)
+    truth = s.truth()
+    err_f = np.sqrt(np.nanmean((np.asarray(filt.angles) - truth) ** 2))
+    err_s = np.sqrt(np.nanmean((np.asarray(sm.angles) - truth) ** 2))
+    assert err_s < err_f
+    a = np.asarray(sm.angles)
+    model = Exact(joints_of(s.robot))
+    np.testing.assert_allclose(a[500, 9:], model.torso_angles(a[500, :9]), atol=1e-12)
+
+
+def test_float32_stays_symmetric_positive_definite(walking):
+    """Three minutes of exact walking at 100 Hz, float32: no NaN, a symmetric positive definite
+    covariance, the error of the float64 run (an hour: docs/kinematics.md)."""
+    s = simulate("xyz,xyz,xyz", "walking", seed=8, duration_s=180.0, drop_prob=0.01,
+                 kinematics="exact")
+    out = {}
+    for dtype in (jnp.float32, jnp.float64):
+        params = Params.paper_defaults(s.robot, dtype=dtype)
+        final, est = run_filter(params, make_series(s.t, s.gyro, s.hall_v, dtype), "kckf3d")
+        out[dtype] = np.asarray(est.angles, np.float64)
+        P = np.asarray(final.P[0], np.float64)
+        assert np.isfinite(out[dtype]).all()
+        np.testing.assert_allclose(P, P.T, atol=0)
+        assert np.linalg.eigvalsh(P).min() > 0
+    assert np.abs(out[jnp.float32] - out[jnp.float64]).max() < np.radians(0.05)
+
+
+def test_fit_lowers_the_loss():
+    short = [simulate("x,yz", "walking", seed=s, duration_s=6.0, kinematics="exact")
+             for s in (1, 2)]
+    res = fit(short[:1], short[1:], FitConfig(steps=4, method="kckf3d", learning_rate=0.05))
+    losses = [h["loss_deg"] for h in res.history]
+    assert losses[-1] < losses[0]
+
+
+def test_stream_and_export_equal_the_batch(walking, tmp_path):
+    from test_stream import LOADER_CHECK, packet_bytes
+
+    from kckf_jax.cli import main
+
+    s = walking[0]
+    n = 300
+    params = Params.paper_defaults(s.robot, s.hall_models)
+    t = s.t[:n]
+    ref = np.asarray(run_filter(params, make_series(t, s.gyro[:n], s.hall_v[:n], jnp.float32),
+                                "kckf3d")[1].angles, np.float64)
+    sf = StreamingFilter(params, "kckf3d")
+    parser = PacketParser(s.robot)
+    got = []
+    for i in range(n):
+        rec = sf.push(parser.parse(packet_bytes(s, i)))
+        got.append([rec[k] for k in s.robot.angle_names])
+    assert np.abs(np.asarray(got) - ref).max() <= 1e-4
+    path = str(tmp_path / "s")
+    write_session(s, path)
+    exp = str(tmp_path / "step.jaxexport")
+    assert main(["export", "--meta", f"{path}/meta.json", "-o", exp, "--method", "kckf3d",
+                 "--quiet"]) == 0
+    loader = os.path.join(os.path.dirname(__file__), "..", "kckf_jax", "export_loader.py")
+    script = LOADER_CHECK.replace("sys.argv_loader", repr(os.path.abspath(loader)))
+    stdin = "\n".join(packet_bytes(s, i).decode() for i in range(n)) + "\n"
+    r = subprocess.run([sys.executable, "-c", script, exp], input=stdin, capture_output=True,
+                       text=True, timeout=120, cwd=str(tmp_path))
+    assert r.returncode == 0, r.stderr[-2000:]
+    recs = [json.loads(line) for line in r.stdout.splitlines()]
+    got = np.array([[rec[k] for k in s.robot.angle_names] for rec in recs])
+    assert np.abs(got - ref).max() <= 1e-4
