@@ -448,8 +448,8 @@ def fit(
     # The readings are judged once, with the starting parameters (``_run.screened``: every
     # reading alone and each sensor over time), not in every step's loss: faulty readings do
     # not enter the fit, and the health monitor's scan is not paid per step.
-    batch = _screen_batch(params, batch)
-    val = None if val is None else _screen_batch(params, val)
+    batch = _screen_batch(params, batch, config.method)
+    val = None if val is None else _screen_batch(params, val, config.method)
     loss = make_loss(config.loss, params, batch, config.method, chunk, config.nll_weight)
     # The validation loss is not differentiated: no remat needed, and the filter's own path.
     val_loss = (None if val is None else
@@ -474,9 +474,9 @@ def fit(
     return result
 
 
-def _screen_batch(params: Params, batch: Batch) -> Batch:
-    """``batch`` with its series as the filter uses it (``_run.screened``), in place."""
-    series, _ = screened(params, batch.series)
+def _screen_batch(params: Params, batch: Batch, method: str) -> Batch:
+    """``batch`` with its series as ``method`` uses it (``_run.screened``), in place."""
+    series, _ = screened(params, batch.series, method)
     return replace(batch, series=series)
 
 

@@ -43,7 +43,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._hall import hall_exponentials
-from ._screen import SATURATED, screen, stand_in
+from ._screen import SATURATED, screen, stand_in, stand_ins
 
 #: Codes after ``_screen.FAULT_KINDS``' (1-4; a clipped gyro is ``SATURATED``).
 NOISY, STUCK, BIAS_STEP = 5, 6, 7
@@ -124,12 +124,12 @@ def init_health(robot, dtype, batch=()) -> Health:
 
 
 @functools.lru_cache(maxsize=64)
-def _pairs(robot):
-    """Per gyro channel its first stand-in (``Robot.gyro_stand_ins``; -1: none, or a channel
-    no rate uses), and ``|W|`` (``J x G``): which channels each joint axis's rate reads."""
+def _pairs(robot, exact: bool = False):
+    """Per gyro channel its first stand-in (``_screen.stand_ins``; -1: none, or a channel no
+    rate uses), and ``|W|`` (``J x G``): which channels each joint axis's rate reads."""
     used = set(int(i) for i in robot.used_gyro_index)
     mate = np.array([m[0] if (c in used and m) else -1
-                     for c, m in enumerate(robot.gyro_stand_ins)])
+                     for c, m in enumerate(stand_ins(robot, exact))])
     return mate, np.abs(robot.rate_map[: robot.n_joint_axes])
 
 
@@ -139,12 +139,16 @@ def _curve(params):
     return hall_exponentials(*coeffs), jax.lax.stop_gradient(params.sigma_hall_v)
 
 
-def health_step(params, h: Health, dt, gyro, hall_v):
+def health_step(params, h: Health, dt, gyro, hall_v, exact: bool = False):
     """One row (``dt`` s, ``gyro`` ``G`` rad/s and ``hall_v`` ``M`` V as ``_screen`` leaves
     them, before any stand-in; any leading axes): ``(state, gyro, hall_v, gyro_code,
     hall_code)``: the new state, the readings the filter uses (a clipped gyro and an isolated
     Hall sensor NaN, a gyro stood in for: ``_screen``'s ``stand_in``) and each reading's
-    health code (0; ``SATURATED`` for a gyro, ``NOISY`` or ``STUCK`` for a Hall sensor)."""
+    health code (0; ``SATURATED`` for a gyro, ``NOISY`` or ``STUCK`` for a Hall sensor).
+    ``exact``: the readings are for the chain's exact kinematics (``kckf3d``): no gyro pairs
+    (``_screen.stand_ins``), so no bias-step check and no stand-in; the Hall sensors' rate
+    reference stays the paper's first-order one (a plausibility check with its own
+    tolerance)."""
     robot = params.robot
     dtype = h.ref.dtype
     dt = jnp.asarray(dt, dtype)[..., None]
@@ -164,7 +168,7 @@ def health_step(params, h: Health, dt, gyro, hall_v):
     # A gyro whose bias stepped (the module docstring): not used while it disagrees with the
     # gyro that measures the same rate; the joints' residuals of the row before decide which
     # of the two it is.
-    mate, W = _pairs(robot)
+    mate, W = _pairs(robot, exact)
     W = np.asarray(W, dtype)
     has = mate >= 0
     d = jnp.where(has, g_read - g_read[..., np.maximum(mate, 0)], np.nan)
@@ -189,7 +193,7 @@ def health_step(params, h: Health, dt, gyro, hall_v):
     # other gyro's, whose bias differs); one missing for longer than HOLD_S takes a gyro
     # measuring the same rate (``_screen.stand_in``).
     missing_s = jnp.where(jnp.isnan(g_read), h.g_missing_s + dt, 0.0)
-    g_used = jnp.where(missing_s > HOLD_S, stand_in(robot, g_read), g_read)
+    g_used = jnp.where(missing_s > HOLD_S, stand_in(robot, g_read, exact), g_read)
     g_last = jnp.where(read, gyro, h.g_last)
     gyro = jnp.where(jnp.isnan(g_used), h.gyro, g_used)
     rate = gyro[..., plus[:J]] - gyro[..., minus[:J]]  # (.., J) joint rates
@@ -251,16 +255,16 @@ def health_step(params, h: Health, dt, gyro, hall_v):
     return new, g_used, jnp.where(use, hall_v, np.nan), g_code, code.astype(jnp.int8)
 
 
-def monitor(params, dt, gyro, hall_v):
+def monitor(params, dt, gyro, hall_v, exact: bool = False):
     """``health_step`` over the rows of one recording or a batch (``dt``: ``... T``), on the
     device: ``(gyro, hall_v, gyro_code, hall_code)``, the readings the filter uses and each
-    one's health code."""
+    one's health code (``exact``: as ``health_step``'s)."""
     dtype = jnp.result_type(hall_v.dtype, jnp.float32)
     batch = jnp.shape(dt)[:-1]
     h0 = init_health(params.robot, dtype, batch)
 
     def body(h, row):
-        h, *out = health_step(params, h, *row)
+        h, *out = health_step(params, h, *row, exact=exact)
         return h, tuple(out)
 
     rows = (jnp.moveaxis(jnp.asarray(dt, dtype), -1, 0), jnp.moveaxis(gyro, -2, 0),
@@ -269,12 +273,13 @@ def monitor(params, dt, gyro, hall_v):
     return tuple(jnp.moveaxis(x, 0, -2) for x in out)
 
 
-def screened_series(params, dt, gyro, hall_v):
+def screened_series(params, dt, gyro, hall_v, exact: bool = False):
     """The readings of a recording or a batch as the filter uses them, and why not: ``_screen``
-    row by row, then the health monitor over time. Returns ``(gyro, hall_v, codes)``, codes
-    per reading (``... G + M``, ``_screen.FAULT_KINDS``; 0: used or missing)."""
+    row by row, then the health monitor over time (``exact``: as ``health_step``'s). Returns
+    ``(gyro, hall_v, codes)``, codes per reading (``... G + M``, ``_screen.FAULT_KINDS``; 0:
+    used or missing)."""
     used = screen(params, gyro, hall_v, jnp)
-    g, v, g_code, h_code = monitor(params, dt, used.gyro, used.hall_v)
+    g, v, g_code, h_code = monitor(params, dt, used.gyro, used.hall_v, exact)
     codes = jnp.concatenate([jnp.maximum(used.gyro_code, g_code),
                              jnp.maximum(used.hall_code, h_code)], axis=-1)
     return g, v, codes

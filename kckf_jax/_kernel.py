@@ -384,7 +384,7 @@ class StepMoments(eqx.Module):
 def kalman_step_moments(params: Params, state: FilterState, inputs: SensorSeries,
                         method: str) -> tuple[FilterState, Estimate, StepMoments]:
     """``step`` of a Kalman method (``KALMAN_METHODS``), and its ``StepMoments``."""
-    inputs = plausible(params, inputs)
+    inputs = plausible(params, inputs, method)
     F = None
     if method == "kckf3d":
         z, P, y, S, F, nu, s, vb, dt = _exact_parts(params, state, inputs)
@@ -458,25 +458,32 @@ def step(
     check_method(method)
     if method in KALMAN_METHODS:
         return _kalman_step(params, state, inputs, method)
-    return _baseline_step(params, state, plausible(params, inputs), method)
+    return _baseline_step(params, state, plausible(params, inputs, method), method)
 
 
-def plausible(params: Params, series: SensorSeries) -> SensorSeries:
+def exact_kinematics(method: str) -> bool:
+    """Whether ``method`` models the chain's exact kinematics (``kckf3d``): then no two gyro
+    channels measure the same rate (``_screen.stand_ins``)."""
+    return method == "kckf3d"
+
+
+def plausible(params: Params, series: SensorSeries, method: str = "kckf") -> SensorSeries:
     """``series`` (a row, a recording or a batch) as the filter uses it (``_screen.screen``):
     every reading that cannot be a measurement (outside ``params.limits``, a railed Hall
     sensor, an angle no joint reaches, a saturated gyro) made missing. Given a recording or a
     batch (a time axis), also judged over time (``_health``): a Hall sensor that turns noisy
     or sticks and a clipped gyro made missing, and a gyro reading missing for a while taken
-    from a gyro that measures the same rate (``Robot.gyro_stand_ins``). Each path calls it
-    once on its whole input (then ``SensorSeries.screened``), the step on its row (where it
-    changes nothing more)."""
+    from a gyro that measures the same rate (``Robot.gyro_stand_ins``; none for ``method``
+    ``"kckf3d"``: ``exact_kinematics``). Each path calls it once on its whole input (then
+    ``SensorSeries.screened``), the step on its row (where it changes nothing more)."""
     if series.screened:
         return series
     gyro, hall_v = jnp.asarray(series.gyro), jnp.asarray(series.hall_v)
     if jnp.ndim(series.dt) == 0:
         used = screen(params, gyro, hall_v)
         return SensorSeries(series.dt, used.gyro, used.hall_v)
-    gyro, hall_v, _ = screened_series(params, series.dt, gyro, hall_v)
+    gyro, hall_v, _ = screened_series(params, series.dt, gyro, hall_v,
+                                      exact_kinematics(method))
     return SensorSeries(series.dt, gyro, hall_v, screened=True)
 
 
@@ -496,7 +503,7 @@ def scan_filter(
     check_method(method)
     if state is None:
         state = init_state(params, method)
-    series = plausible(params, series)
+    series = plausible(params, series, method)
 
     def body(carry, row):
         return step(params, carry, row, method)

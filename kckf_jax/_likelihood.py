@@ -91,7 +91,7 @@ def hall_nll(params: Params, series: SensorSeries, method: str = "kckf",
         batch = jax.tree_util.tree_map(lambda x: x[None], batch)
     # Screened once (``plausible``: the readings the filter uses), for both kinds of term.
     batch = plausible(params, jax.tree_util.tree_map(
-        lambda x: x.astype(params.log_q.dtype), batch))
+        lambda x: x.astype(params.log_q.dtype), batch), method)
     if as_path(path).batch_layout(batch.dt.shape[0], method) == "lanes":
         nu, s, valid = lane_innovations(params, batch, method)
     else:

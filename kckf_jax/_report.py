@@ -32,7 +32,7 @@ TABLE_LABELS = {"gyro": "Gyro", "hall_l": "Hall l", "hall_r": "Hall r", "kf": "S
 
 
 def data_faults(sessions: Sequence[Session], params: Params | None = None,
-                gaps: GapPolicy = GapPolicy()) -> tuple[dict, list[str]]:
+                gaps: GapPolicy = GapPolicy(), method: str = "kckf") -> tuple[dict, list[str]]:
     """What is wrong with the data, before any filter runs: per session, the readings the
     filter does not use because they cannot be measurements (``_screen``: outside the
     physical range, railed, unreachable, saturated) or that stopped following their joint
@@ -43,12 +43,13 @@ def data_faults(sessions: Sequence[Session], params: Params | None = None,
     session in ``"faults"``, an empty list when clean; the others only sessions with something
     to say), the set-up mistakes the first seconds show (``"setup"``: ``setup_check``; a
     joint whose angle cannot be estimated is a ``ValueError`` naming it) and one line for
-    people per finding."""
+    people per finding. ``method``: whose model of the gyros judges them (``kckf3d``: no two
+    gyros measure the same rate, ``_screen.stand_ins``)."""
     faults, out_of_range, gap_doc, setup, lines = {}, {}, {}, {}, []
     for s, p in zip(sessions, session_params(sessions, params)):
         key = s.path or "session"
         names = s.robot.gyro_names + s.robot.hall_names
-        codes = np.asarray(series_faults(p, session_series(s, p.log_q.dtype)))
+        codes = np.asarray(series_faults(p, session_series(s, p.log_q.dtype), method))
         faults[key] = fault_stretches(s.t, codes, names)
         cols = {}
         for j in np.flatnonzero((codes == OUT_OF_RANGE).any(axis=0)):
@@ -148,7 +149,10 @@ def evaluate_sessions(sessions: Sequence[Session], methods: Sequence[str],
                 f"{s.path}: no motion capture overlaps the sensors (mocap.csv is needed to "
                 "evaluate)"
             )
-    faults, warnings = data_faults(sessions, params, gaps)
+    # The data's faults as the methods see them: under exact kinematics when every method
+    # models them (``_screen.stand_ins``), else under the paper's model.
+    exact = all(m == "kckf3d" for m in methods)
+    faults, warnings = data_faults(sessions, params, gaps, "kckf3d" if exact else "kckf")
     out, angles, nis_rows = {}, {}, {}
     for m in methods:
         kalman = m in KALMAN_METHODS

@@ -24,6 +24,7 @@ from ._kernel import (
     FilterState,
     SensorSeries,
     check_method,
+    exact_kinematics,
     init_state,
     init_states,
     pad_series,
@@ -80,7 +81,7 @@ def run_filter(
         ((5, 4), 'sequential')
     """
     check_method(method)
-    series, faults = screened(params, series)
+    series, faults = screened(params, series, method)
     chosen = choose_path(params, series, method, path, state).path
     if state is None:
         state = init_state(params, method)
@@ -95,7 +96,8 @@ def _named(est: Estimate, path: AbstractPath, params: Params, faults) -> Estimat
                                faults=faults)
 
 
-def screened(params: Params, series: SensorSeries) -> tuple[SensorSeries, Array | None]:
+def screened(params: Params, series: SensorSeries, method: str = "kckf"
+             ) -> tuple[SensorSeries, Array | None]:
     """``series`` (one recording or a batch) as the filter uses it (the kernel's
     ``plausible``: judged row by row and over time), and why each reading it does not use is
     not used (``Estimate.faults``: codes of ``_screen.FAULT_KINDS``). Every path is given
@@ -105,21 +107,22 @@ def screened(params: Params, series: SensorSeries) -> tuple[SensorSeries, Array 
     here; ``Estimate.faults`` is then ``None``)."""
     if series.screened:
         return series, None
-    return _screened(params, series)
+    return _screened(params, series, exact_kinematics(method))
 
 
 @eqx.filter_jit
-def _screened(params: Params, series: SensorSeries) -> tuple[SensorSeries, Array]:
+def _screened(params: Params, series: SensorSeries, exact: bool
+              ) -> tuple[SensorSeries, Array]:
     dtype = params.log_q.dtype
     gyro, hall_v, codes = screened_series(params, jnp.asarray(series.dt, dtype),
                                           jnp.asarray(series.gyro, dtype),
-                                          jnp.asarray(series.hall_v, dtype))
+                                          jnp.asarray(series.hall_v, dtype), exact)
     return SensorSeries(jnp.asarray(series.dt, dtype), gyro, hall_v, screened=True), codes
 
 
-def series_faults(params: Params, series: SensorSeries) -> Array:
-    """``Estimate.faults`` of ``series``: ``screened``'s codes."""
-    return screened(params, series)[1]
+def series_faults(params: Params, series: SensorSeries, method: str = "kckf") -> Array:
+    """``Estimate.faults`` of ``series`` for ``method``: ``screened``'s codes."""
+    return screened(params, series, method)[1]
 
 
 def _one(x):
@@ -143,7 +146,7 @@ def filter_batch(params: Params, series: SensorSeries, method: str = "kckf",
         (2, 7, 2)
     """
     check_method(method)
-    series, faults = screened(params, series)
+    series, faults = screened(params, series, method)
     chosen = choose_path(params, series, method, path).path
     state = init_states(params, method, jnp.shape(series.dt)[0])
     out = chosen.compute(params, series, method, state)
@@ -236,7 +239,7 @@ def filter_sessions(
         batch = pad_series([session_series(pieces[j][1], np.float64) for j in members])
         batch = jax.tree_util.tree_map(lambda x, d=dtype_p: jnp.asarray(x, d), batch)
         if smooth:  # screened once: the smoother's paths take the screened rows as they are
-            screened_batch, faults = screened(p, batch)
+            screened_batch, faults = screened(p, batch, method)
             est = dataclasses.replace(smooth_batch(p, screened_batch, method), faults=faults)
         else:
             est = filter_batch(p, batch, method, path)

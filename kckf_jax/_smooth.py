@@ -56,7 +56,7 @@ def filter_moments(params: Params, series: SensorSeries, method: str,
     state = init_state(params, method) if state is None else state
     dtype = state.z.dtype
     series = plausible(params, jax.tree_util.tree_map(lambda x: jnp.asarray(x).astype(dtype),
-                                                      series))
+                                                      series), method)
 
     @jax.checkpoint
     def body(carry, row):

@@ -98,10 +98,12 @@ def cmd_simulate(args) -> int:
 
 
 def cmd_observability(args) -> int:
-    from ._observability import observability_ranks
+    from ._observability import observability_ranks, pose_from_degrees
     from ._robot import Robot
 
-    print(json.dumps(observability_ranks(Robot.from_spec(args.joints))))
+    robot = Robot.from_spec(args.joints)
+    pose = pose_from_degrees(robot, args.pose, "--pose") if args.pose else None
+    print(json.dumps(observability_ranks(robot, pose=pose)))
     return 0
 
 
@@ -119,7 +121,7 @@ def cmd_filter(args) -> int:
     method = _check_methods([args.method])[0]
     (session,) = _read_sessions([args.session], args=args)
     params = _load_params(args, [session])
-    _warn(args, data_faults([session], params, _gaps(args))[1])
+    _warn(args, data_faults([session], params, _gaps(args), method)[1])
     (est,) = filter_sessions([session], method, params, gaps=_gaps(args),
                              smooth=args.smooth, path=_one_shot())
     _warn(args, estimate_faults([session], method, [est]))
@@ -214,8 +216,10 @@ def cmd_fit(args) -> int:
     sessions = _read_sessions(args.sessions, require_mocap=mocap, args=args)
     val = _read_sessions(args.val or [], require_mocap=mocap, args=args)
     common_robot(sessions + val)
-    _warn(args, data_faults(sessions + val, None, _gaps(args))[1])
+    method = _check_methods([args.method])[0]
+    _warn(args, data_faults(sessions + val, None, _gaps(args), method)[1])
     config = FitConfig(steps=args.steps, learning_rate=args.lr, hall_noise=args.noise,
+                       method=method,
                        freeze=tuple(args.freeze or ()), burn_in_s=args.burn_in,
                        batch_size=args.batch_size, seed=args.seed, loss=args.loss,
                        **({} if args.nll_weight is None else {"nll_weight": args.nll_weight}))
@@ -477,7 +481,7 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--plot", metavar="DIR", help="write Fig. 5/6-style plots to DIR")
     e.add_argument("--burn-in", type=float, default=0.0, help="seconds left out at the start")
     e.add_argument("--smooth", action="store_true",
-                   help="score the fixed-interval (RTS) smoothed estimates (kckf, kf)")
+                   help="score the fixed-interval (RTS) smoothed estimates (kckf, kf, kckf3d)")
     _data_options(e)
     e.set_defaults(func=cmd_evaluate)
 
@@ -491,6 +495,7 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--steps", type=int, default=200, help="maximum gradient steps (200)")
     t.add_argument("--seed", type=int, default=0, help="seeds minibatch draws (0)")
     t.add_argument("--lr", type=float, default=0.03, help="Adam learning rate (0.03)")
+    t.add_argument("--method", default="kckf", help="the filter to fit: kckf, kf or kckf3d")
     t.add_argument("--noise", choices=("voltage", "angle"), default="voltage",
                    help="Hall noise model of the fitted filter (default voltage)")
     t.add_argument("--freeze", action="append", metavar="LEAF",
@@ -555,6 +560,8 @@ def build_parser() -> argparse.ArgumentParser:
     o = sub.add_parser("observability", parents=[common],
                        help="observability ranks of the standard KF and the KCKF")
     o.add_argument("--joints", required=True, help="axes per joint, e.g. x,y,x,y")
+    o.add_argument("--pose", metavar="DEG,...",
+                   help="joint angles (deg) where kckf3d's local rank is taken (default 0)")
     o.set_defaults(func=cmd_observability)
     return p
 

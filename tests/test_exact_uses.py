@@ -76,13 +76,16 @@ def test_fit_lowers_the_loss():
     assert losses[-1] < losses[0]
 
 
-def test_stream_and_export_equal_the_batch(walking, tmp_path):
+def test_stream_and_export_equal_the_batch(tmp_path):
+    """On a layout whose gyros the paper's model pairs (x,y,x,y): the stream and the exported
+    step judge the readings as the batch filter does for kckf3d (no pairs), to 1e-4 rad."""
     from test_stream import LOADER_CHECK, packet_bytes
 
     from kckf_jax.cli import main
 
-    s = walking[0]
-    n = 300
+    s = simulate("x,y,x,y", "walking", seed=4, duration_s=12.0, drop_prob=0.02,
+                 kinematics="exact")
+    n = 600
     params = Params.paper_defaults(s.robot, s.hall_models)
     t = s.t[:n]
     ref = np.asarray(run_filter(params, make_series(t, s.gyro[:n], s.hall_v[:n], jnp.float32),
@@ -108,3 +111,29 @@ def test_stream_and_export_equal_the_batch(walking, tmp_path):
     recs = [json.loads(line) for line in r.stdout.splitlines()]
     got = np.array([[rec[k] for k in s.robot.angle_names] for rec in recs])
     assert np.abs(got - ref).max() <= 1e-4
+
+
+def test_exact_data_has_no_gyro_pairs_for_kckf3d():
+    """Under exact kinematics no two gyros measure the same rate: the paper's pairs take the
+    turned rates of walking for bias steps; kckf3d's screening has no pairs to judge."""
+    from kckf_jax import filter_sessions
+    from kckf_jax._screen import FAULT_KINDS
+
+    s = simulate("x,y,x,y", "walking", seed=100, duration_s=30.0, kinematics="exact")
+    step = FAULT_KINDS.index("bias_step") + 1
+    lin = np.asarray(filter_sessions([s], "kckf")[0].faults)
+    ex = np.asarray(filter_sessions([s], "kckf3d")[0].faults)
+    assert (lin == step).sum() > 500
+    assert not (ex == step).any()
+
+
+def test_local_observability_ranks():
+    from kckf_jax import Robot, observability_ranks
+    from kckf_jax.cli import main
+
+    robot = Robot.from_spec("xyz,xyz,xyz")
+    n = robot.n_states
+    assert observability_ranks(robot)["rank_kckf3d"] == n
+    pose = np.radians(np.linspace(-40, 40, robot.n_joint_axes))
+    assert observability_ranks(robot, pose=pose)["rank_kckf3d"] == n
+    assert main(["observability", "--joints", "x,y", "--pose", "10"]) == 2

@@ -13,7 +13,15 @@ import numpy as np
 from .._gaps import GapPolicy
 from .._hall import hall_exponentials
 from .._health import health_step, init_health
-from .._kernel import FilterState, SensorSeries, check_method, estimated, init_state, step
+from .._kernel import (
+    FilterState,
+    SensorSeries,
+    check_method,
+    estimated,
+    exact_kinematics,
+    init_state,
+    step,
+)
 from .._model import structure
 from .._params import Params
 from .._paths import STEP_TOL_S, Steady, converged_map, readings_present, relative_change
@@ -350,6 +358,7 @@ def stream_step_fn(params: Params, method: str, health: bool = False):
     """
     G = 3 * params.robot.n_links
     dtype = params.log_q.dtype
+    exact = exact_kinematics(method)
     start = init_state(params, method)
     if health:
         start = (start, init_health(params.robot, dtype))
@@ -375,7 +384,7 @@ def stream_step_fn(params: Params, method: str, health: bool = False):
             state, h = state
             used = screen(p, inputs.gyro, inputs.hall_v)
             h, gyro, hall_v, g_code, h_code = health_step(p, h, inputs.dt, used.gyro,
-                                                          used.hall_v)
+                                                          used.hall_v, exact)
             inputs = SensorSeries(inputs.dt, gyro, hall_v)
             codes = jnp.concatenate([jnp.maximum(used.gyro_code, g_code),
                                      jnp.maximum(used.hall_code, h_code)])
