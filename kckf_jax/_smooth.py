@@ -93,8 +93,9 @@ def _smoothed(params: Params, series: SensorSeries, method: str, state: FilterSt
 def smooth(params: Params, series: SensorSeries, method: str = "kckf",
            state: FilterState | None = None, path: str | AbstractPath = "auto") -> Estimate:
     """The fixed-interval (RTS) smoothed estimates of one recording (``run_filter``'s
-    arguments; ``method`` ``"kckf"`` or ``"kf"``): each row's angles, their standard
-    deviations and biases given every reading of the recording, before and after it.
+    arguments; ``method`` a Kalman method: ``"kckf"``, ``"kf"``, ``"kckf3d"``): each row's
+    angles, their standard deviations and biases given every reading of the recording, before
+    and after it.
     ``path`` as ``smooth_batch``'s (``"auto"``: steady where it applies, else sequential); an
     entering ``state`` is taken by the sequential path only.
 

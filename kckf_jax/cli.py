@@ -469,7 +469,7 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--params", help="fitted parameters (kckf fit)")
     f.add_argument("-o", "--output", required=True, help="estimates CSV to write")
     f.add_argument("--smooth", action="store_true",
-                   help="the fixed-interval (RTS) smoothed estimates instead (kckf, kf)")
+                   help="the fixed-interval (RTS) smoothed estimates instead (Kalman methods)")
     _data_options(f)
     f.set_defaults(func=cmd_filter)
 
