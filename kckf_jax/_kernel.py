@@ -174,8 +174,9 @@ def init_state(params: Params, method: str = "kckf") -> FilterState:
         P0 = initial_covariance(st, params)
         return FilterState(jnp.zeros(P0.shape[:2], dtype), P0, hold)
     if method == "kckf3d":
-        P0 = _exact.initial_covariance(_exact.exact_model(robot), params.p0_angle,
-                                       params.p0_bias)[None].astype(dtype)
+        model = _exact.exact_model(robot)
+        p0_bias = _exact.gyro_bias_noise(model, params.q, params.bias_rw, params.p0_bias)[2]
+        P0 = _exact.initial_covariance(model, params.p0_angle, p0_bias)[None].astype(dtype)
         return FilterState(jnp.zeros(P0.shape[:2], dtype), P0, hold)
     n = robot.n_angles if method == "gyro" else robot.n_joint_axes
     z0 = jnp.zeros(n, dtype) if method == "gyro" else jnp.full(n, jnp.nan, dtype)
@@ -412,9 +413,10 @@ def _exact_parts(params: Params, state: FilterState, inputs: SensorSeries):
     model = _exact.exact_model(params.robot)
     dt = inputs.dt.astype(dtype)
     noise = ProcessNoise(*q_blocks(params.q, params.angle_rw, params.bias_rw, dt))
+    bias_q, bias_rw2, _ = _exact.gyro_bias_noise(model, params.q, params.bias_rw, params.p0_bias)
     h, rh, vh = fused_pairs(*hall_measurements(params, inputs.hall_v.astype(dtype)))
     z, P, y, S, F, nu, s = _exact.exact_step(model, state.z[0], state.P[0], state.gyro_hold,
-                                             noise, h, rh, vh, dt)
+                                             noise, bias_q, bias_rw2, h, rh, vh, dt)
     return z[None], P[None], y[None], S[None], F[None], nu[None], s[None], vh[None], dt
 
 

@@ -289,6 +289,8 @@ def usable_readings(joints, t, gyro, hall_v, params):
       isolated;
     * an isolated sensor is used again once calm (roughness below ROUGH_LOW, not stuck, read)
       for READMIT_S.
+
+    ``params["no_gyro_pairs"]``: no stand-ins and no pair check (exact kinematics).
     """
     L = layout(joints)
     J, M, G = L["J"], L["M"], L["n_gyro"]
@@ -296,7 +298,9 @@ def usable_readings(joints, t, gyro, hall_v, params):
     H = params.get("health")
     if H is None:  # the paper's filter alone (this module's own checks)
         return gyro, hall_v
-    order = _stand_in_order(joints)
+    # Under exact kinematics (the rotation-aware KCKF) no two gyros measure the same rate.
+    order = ({c: [] for c in _stand_in_order(joints)} if params.get("no_gyro_pairs")
+             else _stand_in_order(joints))
     dt = _dt(t)
     T_len = len(t)
     g_out, v_out = np.full_like(gyro, np.nan), hall_v.copy()

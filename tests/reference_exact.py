@@ -2,19 +2,22 @@
 
 A test oracle written from the equations (docs/kinematics.md), not from ``kckf_jax``: it does
 not import the package. It shares with ``reference.py`` the screening of the readings
-(``usable_readings``), Eq. 1 and the Hall noise, which the linear reference already checks.
+(``usable_readings``, given the exact model's gyro pairs: none), Eq. 1 and the Hall noise,
+which the linear reference already checks.
 
-Model (``z = [theta (J), b (J), b_phi (P)]``, the torso angles ``phi = euler(chain(theta))``):
+Model (``z = [theta (J), beta (Gb)]``, the torso angles ``phi = euler(chain(theta))``):
 
 * a joint with axes ``a_1..a_m`` turns by ``R = R_a1(t_1) ... R_am(t_m)``; its body Jacobian's
-  column ``k`` is ``(R_a(k+1) ... R_am)^T e_ak``; the gyros give its coordinate rates
-  ``u = lstsq(J, g_{i+1} - R^T g_i)``;
-* predicted ``y = [theta' = theta + dt (u - b) + w_theta, b + w_b, b_phi + w_bphi,
-  euler(chain(theta')) - (euler(chain(theta + dt u)) - dt b_phi + w_phi)]`` (the torso moved
-  along the chain by the joints' unbiased rates), linearised in ``z`` and ``w`` by central
-  differences; ``S = F P F' + G Q G'`` (Eq. 13's ``Q`` per angle coordinate);
-* condition on ``e = 0`` (one joint Gaussian conditioning), then every Hall reading as its own
-  row (Eqs. 5, 8, 20), one joint update in Joseph form.
+  column ``k`` is ``(R_a(k+1) ... R_am)^T e_ak``; bias-free gyros give its coordinate rates
+  ``u = lstsq(J, w_{i+1} - R^T w_i)``, ``w = g - beta`` (a gyro channel not in the state: no
+  bias);
+* the state's bias channels: those the joints read (a one-axis joint its axis on both links,
+  a joint of several axes all three); each channel's Eq. 13 scale, random walk and prior are
+  the mean of the joint coordinates' that read it, halved as variances;
+* predicted ``[theta + dt u + w_theta, beta + w_beta]``, linearised in ``z`` by central
+  differences, ``S = F P F' + Q`` (diagonal: the joints' angle variance, the channels' bias
+  variance);
+* every Hall reading as its own row (Eqs. 5, 8, 20), one joint update in Joseph form.
 """
 
 from __future__ import annotations
@@ -64,9 +67,19 @@ class Exact:
         self.J, self.P, self.K = self.L["J"], self.L["P"], self.L["K"]
         self.torso = [AXES.index(a) for a in self.L["torso_axes"]]
         self.sl, k = [], 0
-        for axes in self.joints:
-            self.sl.append(list(range(k, k + len(axes))))
+        reads = {}
+        for i, axes in enumerate(self.joints):
+            s = list(range(k, k + len(axes)))
+            self.sl.append(s)
             k += len(axes)
+            cols = [0, 1, 2] if len(axes) > 1 else [AXES.index(axes[0])]
+            for link in (i, i + 1):
+                for c in cols:
+                    reads.setdefault(3 * link + c, set()).update(s)
+        self.channels = sorted(reads)
+        self.share = np.zeros((len(self.channels), self.J))
+        for r, c in enumerate(self.channels):
+            self.share[r, sorted(reads[c])] = 1.0 / len(reads[c])
 
     def torso_angles(self, th) -> np.ndarray:
         R = np.eye(3)
@@ -82,14 +95,15 @@ class Exact:
             out.append(np.linalg.lstsq(joint_jac(axes, th[s]), v, rcond=None)[0])
         return np.concatenate(out)
 
-    def y(self, z, w, g, dt) -> np.ndarray:
-        J, K = self.J, self.K
-        th, b, bp = z[:J], z[J:2 * J], z[2 * J:]
-        u = self.rates(th, g)
-        th_n = th + dt * (u - b) + w[:J]
-        phi_n = self.torso_angles(th + dt * u)[self.torso] - dt * bp + w[J:K]
-        e = self.torso_angles(th_n)[self.torso] - phi_n
-        return np.concatenate([th_n, b + w[K:K + J], bp + w[K + J:], e])
+    def full_bias(self, beta) -> np.ndarray:
+        out = np.zeros(3 * (len(self.joints) + 1))
+        out[self.channels] = beta
+        return out
+
+    def predict(self, z, g, dt) -> np.ndarray:
+        J = self.J
+        th, beta = z[:J], z[J:]
+        return np.concatenate([th + dt * self.rates(th, g - self.full_bias(beta)), beta])
 
 
 def _jac(f, x) -> np.ndarray:
@@ -101,44 +115,34 @@ def _jac(f, x) -> np.ndarray:
     return np.stack(cols, axis=1)
 
 
-def _Q(K, params, ts) -> np.ndarray:
-    q, arw, brw = (np.asarray(params[k], float) for k in ("q", "angle_rw", "bias_rw"))
-    Q = np.zeros((2 * K, 2 * K))
-    for k in range(K):
-        Q[k, k] = q[k] * ts**4 / 4 + arw[k] ** 2 * ts
-        Q[k, K + k] = Q[K + k, k] = q[k] * ts**3 / 2
-        Q[K + k, K + k] = q[k] * ts**2 + brw[k] ** 2 * ts
-    return Q
-
-
 def reference_exact_filter(joints, t, gyro, hall_v, params) -> dict:
     """Run the rotation-aware KCKF over a recording: the estimated angles (joints, then the
-    torso's), biases and the final ``z``, ``P``."""
+    torso's), each angle's rate bias and the final ``z``, ``P``."""
     model = Exact(joints)
-    J, P, K = model.J, model.P, model.K
+    J, K = model.J, model.K
     L = model.L
     t = np.asarray(t, float)
+    params = dict(params, no_gyro_pairs=True)
     gyro, hall_v = usable_readings(model.joints, t, np.asarray(gyro, float), hall_v, params)
     dt = np.zeros_like(t)
     dt[1:] = np.diff(t)
-    nz = 2 * J + P
+    q, arw, brw, p0a, p0b = (np.asarray(params[k], float)
+                             for k in ("q", "angle_rw", "bias_rw", "p0_angle", "p0_bias"))
+    share = model.share
+    q_c, brw2_c, p0_c = share @ q[:J] / 2, share @ brw[:J] ** 2 / 2, share @ p0b[:J] ** 2 / 2
+    nz = J + len(model.channels)
     z = np.zeros(nz)
-    p0a, p0b = (np.asarray(params[k], float) for k in ("p0_angle", "p0_bias"))
-    Pz = np.diag(np.concatenate([p0a[:J] ** 2, p0b**2]))
+    Pz = np.diag(np.concatenate([p0a[:J] ** 2, p0_c]))
     hold = np.zeros(L["n_gyro"])
     angles, bias = np.zeros((t.size, K)), np.zeros((t.size, K))
     for k in range(t.size):
         ts = dt[k]
         if ts > 0:
-            w0 = np.zeros(2 * K)
-            y = model.y(z, w0, hold, ts)
-            F = _jac(lambda v: model.y(v, w0, hold, ts), z)
-            G = _jac(lambda v: model.y(z, v, hold, ts), w0)
-            S = F @ Pz @ F.T + G @ _Q(K, params, ts) @ G.T
-            # Condition on the perfect measurement e = 0.
-            Sze, See = S[:nz, nz:], S[nz:, nz:]
-            z = y[:nz] - Sze @ np.linalg.solve(See, y[nz:])
-            Pz = S[:nz, :nz] - Sze @ np.linalg.solve(See, Sze.T)
+            F = _jac(lambda v: model.predict(v, hold, ts), z)
+            z = model.predict(z, hold, ts)
+            Q = np.diag(np.concatenate([q[:J] * ts**4 / 4 + arw[:J] ** 2 * ts,
+                                        q_c * ts**2 + brw2_c * ts]))
+            Pz = F @ Pz @ F.T + Q
         rows, ys, rs = [], [], []
         for m in range(L["M"]):
             V = hall_v[k, m]
@@ -154,7 +158,10 @@ def reference_exact_filter(joints, t, gyro, hall_v, params) -> dict:
             z = z + Kg @ (np.array(ys) - Hm @ z)
             I_KH = np.eye(nz) - Kg @ Hm
             Pz = I_KH @ Pz @ I_KH.T + Kg @ R @ Kg.T
-        angles[k] = np.concatenate([z[:J], model.torso_angles(z[:J])[model.torso]])
-        bias[k] = z[J:]
+        th = z[:J]
+        rate_bias = model.rates(th, model.full_bias(z[J:]))  # u is linear in the gyros
+        C = _jac(lambda v: model.torso_angles(v)[model.torso], th)
+        angles[k] = np.concatenate([th, model.torso_angles(th)[model.torso]])
+        bias[k] = np.concatenate([rate_bias, C @ rate_bias])
         hold = _update_hold(hold, gyro[k])
     return dict(angles=angles, bias=bias, z=z, P=Pz)
