@@ -321,7 +321,7 @@ def _score(fits: tuple[_Fit, _Fit]) -> float:
 
 
 def setup_check(session, params: Params | None = None,
-                seconds: float = 20.0) -> list[SetupFinding]:
+                seconds: float = 20.0, exact: bool = False) -> list[SetupFinding]:
     """Set-up mistakes recognisable in the first ``seconds`` of a session.
 
     Args:
@@ -331,6 +331,10 @@ def setup_check(session, params: Params | None = None,
             session's ``hall_models``. A session that states its limits has them either way
             (as ``session_params`` does).
         seconds: how much of the start to look at, s.
+        exact: the data are judged for the chain's exact kinematics (``kckf3d``): a joint of
+            several axes turns its coordinates at rates that depend on its angles, not at the
+            gyro differences of Eq. 2, so only one-axis joints (whose rate is Eq. 2's at any
+            angle) are judged.
 
     Returns:
         The findings (empty when nothing is wrong, or nothing moved enough to tell), joint axis
@@ -353,12 +357,13 @@ def setup_check(session, params: Params | None = None,
     if not seconds > 0:
         raise ValueError(f"setup_check: seconds must be positive, got {seconds!r}")
     data = _Data(session, params, float(seconds))
-    J = robot.n_joint_axes
     names = robot.joint_angle_names
     hall = robot.hall_names
     gyro_names = robot.gyro_names
 
-    moving = [j for j in range(J) if data.motion_deg(j) >= MIN_MOTION_DEG]
+    judged = [j for j, (i, _) in enumerate(robot.joint_axes)
+              if not exact or len(robot.joints[i - 1]) == 1]
+    moving = [j for j in judged if data.motion_deg(j) >= MIN_MOTION_DEG]
     base = {j: data.joint(j) for j in moving}
     wrong = {j for j in moving if not _consistent(base[j])}
 

@@ -3,6 +3,8 @@ the fit, the stream and the exported step (its equations: ``test_exact.py``)."""
 
 from __future__ import annotations
 
+import contextlib
+import io
 import json
 import os
 import subprocess
@@ -137,3 +139,35 @@ def test_local_observability_ranks():
     pose = np.radians(np.linspace(-40, 40, robot.n_joint_axes))
     assert observability_ranks(robot, pose=pose)["rank_kckf3d"] == n
     assert main(["observability", "--joints", "x,y", "--pose", "10"]) == 2
+
+
+def test_every_loss_fits():
+    """The RMSE, the likelihood and both: a finite loss every step, a lower RMSE loss."""
+    short = [simulate("x,yz", "walking", seed=s, duration_s=4.0, kinematics="exact")
+             for s in (3, 4)]
+    for loss in ("nll", "rmse+nll"):
+        res = fit(short[:1], short[1:], FitConfig(steps=2, method="kckf3d", loss=loss))
+        assert all(np.isfinite(v) for h in res.history for k, v in h.items()
+                   if k.startswith(("loss_", "val_")) and v is not None), res.history
+
+
+def test_evaluate_and_filter_commands(tmp_path):
+    """``kckf simulate --kinematics exact``, then ``evaluate`` with both KCKFs (filtered and
+    smoothed) and ``filter --method kckf3d``: the exact filter wins on exact data."""
+    from kckf_jax.cli import main
+
+    path = str(tmp_path / "w")
+    assert main(["simulate", path, "--kind", "walking", "--seed", "2", "--duration", "20",
+                 "--joints", "xyz,xyz", "--kinematics", "exact", "--quiet"]) == 0
+    out = str(tmp_path / "est.csv")
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf):
+        assert main(["evaluate", path, "--method", "kckf", "--method", "kckf3d", "--json",
+                     "--smooth"]) == 0
+    doc = json.loads(buf.getvalue())
+    m = doc["methods"]
+    assert m["kckf3d"]["mean_rmse_deg"] < m["kckf"]["mean_rmse_deg"]
+    assert m["kckf3d"]["path"].startswith("smoothed")
+    assert main(["filter", path, "--method", "kckf3d", "-o", out, "--quiet"]) == 0
+    with open(out) as f:
+        assert f.readline().startswith("t,")
