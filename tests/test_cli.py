@@ -108,7 +108,8 @@ def test_filter_writes_estimates_named_as_mocap(session, tmp_path, capsys):
 
 def test_observability(capsys):
     code, out, _ = _run(capsys, "observability", "--joints", "xyz,xyz,xyz,xyz")
-    assert code == 0 and json.loads(out) == {"n_states": 30, "rank_kf": 24, "rank_kckf": 30}
+    assert code == 0 and json.loads(out) == {"n_states": 30, "rank_kf": 24, "rank_kckf": 30,
+                                             "rank_kckf3d": 30}
 
 
 @pytest.mark.parametrize("argv, needle", [

@@ -54,9 +54,9 @@ def test_smoother_ends_on_the_filter_and_keeps_the_chain(walking):
 
 
 def test_float32_stays_symmetric_positive_definite(walking):
-    """Three minutes of exact walking at 100 Hz, float32: no NaN, a symmetric positive definite
+    """A minute of exact walking at 100 Hz, float32: no NaN, a symmetric positive definite
     covariance, the error of the float64 run (an hour: docs/kinematics.md)."""
-    s = simulate("xyz,xyz,xyz", "walking", seed=8, duration_s=180.0, drop_prob=0.01,
+    s = simulate("xyz,xyz,xyz", "walking", seed=8, duration_s=60.0, drop_prob=0.01,
                  kinematics="exact")
     out = {}
     for dtype in (jnp.float32, jnp.float64):
@@ -87,7 +87,7 @@ def test_stream_and_export_equal_the_batch(tmp_path):
 
     s = simulate("x,y,x,y", "walking", seed=4, duration_s=12.0, drop_prob=0.02,
                  kinematics="exact")
-    n = 600
+    n = 300
     params = Params.paper_defaults(s.robot, s.hall_models)
     t = s.t[:n]
     ref = np.asarray(run_filter(params, make_series(t, s.gyro[:n], s.hall_v[:n], jnp.float32),
@@ -141,14 +141,14 @@ def test_local_observability_ranks():
     assert main(["observability", "--joints", "x,y", "--pose", "10"]) == 2
 
 
-def test_every_loss_fits():
-    """The RMSE, the likelihood and both: a finite loss every step, a lower RMSE loss."""
+def test_the_likelihood_fits():
+    """The likelihood with the RMSE (``rmse+nll``, both terms; the RMSE alone: above): a
+    finite loss at every step."""
     short = [simulate("x,yz", "walking", seed=s, duration_s=4.0, kinematics="exact")
              for s in (3, 4)]
-    for loss in ("nll", "rmse+nll"):
-        res = fit(short[:1], short[1:], FitConfig(steps=2, method="kckf3d", loss=loss))
-        assert all(np.isfinite(v) for h in res.history for k, v in h.items()
-                   if k.startswith(("loss_", "val_")) and v is not None), res.history
+    res = fit(short[:1], short[1:], FitConfig(steps=2, method="kckf3d", loss="rmse+nll"))
+    assert all(np.isfinite(v) for h in res.history for k, v in h.items()
+               if k.startswith(("loss_", "val_")) and v is not None), res.history
 
 
 def test_evaluate_and_filter_commands(tmp_path):
@@ -157,7 +157,7 @@ def test_evaluate_and_filter_commands(tmp_path):
     from kckf_jax.cli import main
 
     path = str(tmp_path / "w")
-    assert main(["simulate", path, "--kind", "walking", "--seed", "2", "--duration", "20",
+    assert main(["simulate", path, "--kind", "walking", "--seed", "2", "--duration", "12",
                  "--joints", "xyz,xyz", "--kinematics", "exact", "--quiet"]) == 0
     out = str(tmp_path / "est.csv")
     buf = io.StringIO()
