@@ -52,9 +52,7 @@ from jaxtyping import Array, Bool, Float
 from ._kalman import coordinate_update, symmetrise
 from ._model import ProcessNoise
 from ._robot import AXES, Robot
-from ._rotations import euler_xyz, joint_jacobian, joint_rotation
-
-XYZ = ("x", "y", "z")
+from ._rotations import chain_rotation, euler_xyz, joint_jacobian, joint_rotation
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -77,10 +75,6 @@ class ExactModel:
     share: np.ndarray
     J: int
     P: int
-
-    @property
-    def K(self) -> int:
-        return self.J + self.P
 
     @property
     def G(self) -> int:
@@ -142,9 +136,9 @@ def solve_small(A: Float[Array, "m m"], b: Float[Array, " m"]) -> Float[Array, "
 
 def coordinate_rates(axes, angles: Float[Array, " m"], relative: Float[Array, " 3"]
                      ) -> Float[Array, " m"]:
-    """The coordinate rates ``J^+ w`` of a joint (or the torso's Euler angles) whose child
-    turns at ``w`` relative to its parent, in the child's frame (``J``: ``joint_jacobian``;
-    least squares for fewer than three axes)."""
+    """The coordinate rates ``J^+ w`` of a joint whose child turns at ``w`` relative to its
+    parent, in the child's frame (``J``: ``joint_jacobian``; least squares for fewer than
+    three axes)."""
     Jm = joint_jacobian(axes, angles, jnp)
     if len(axes) == 3:
         return solve_small(Jm, relative)
@@ -154,12 +148,10 @@ def coordinate_rates(axes, angles: Float[Array, " m"], relative: Float[Array, " 
 
 
 def torso_euler(model: ExactModel, theta: Float[Array, " J"]) -> Float[Array, " 3"]:
-    """The x-y-z Euler angles of link ``n + 1`` relative to link 1 (all three)."""
-    R = None
-    for axes, sl in zip(model.robot.joints, model.joint_slices, strict=True):
-        Ri = joint_rotation(axes, theta[sl[0]:sl[-1] + 1], jnp)
-        R = Ri if R is None else R @ Ri
-    return euler_xyz(R, jnp)
+    """The x-y-z Euler angles of link ``n + 1`` relative to link 1 (all three): the
+    simulator's ``chain_rotation`` of each joint's coordinates (static slices)."""
+    angles = [theta[sl[0]:sl[-1] + 1] for sl in model.joint_slices]
+    return euler_xyz(chain_rotation(model.robot.joints, angles, jnp), jnp)
 
 
 def torso_angles(model: ExactModel, theta: Float[Array, " J"]) -> Float[Array, " P"]:
