@@ -1,7 +1,8 @@
 """The CSV files of a session (``sensors.csv``, ``mocap.csv``): read fast, and when anything is
 wrong, read again cell by cell to name the line and the column; written back at full precision.
 
-Plain NumPy and the standard library, at the edge of the package.
+Plain NumPy and the standard library (pyarrow's CSV reader first when it is installed: it is a
+dependency for speed, measured in benchmarks/front_door.py), at the edge of the package.
 """
 
 from __future__ import annotations
@@ -10,9 +11,11 @@ import csv
 import io
 import math
 import warnings
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 
 import numpy as np
+
+from ._atomic import atomic_write
 
 META_FILE = "meta.json"
 SENSORS_FILE = "sensors.csv"
@@ -28,36 +31,54 @@ class SessionError(ValueError):
 
 
 def _read_text(file: str) -> str:
+    return _decode(file, _read_bytes(file))
+
+
+def _read_bytes(file: str) -> bytes:
     try:
-        with open(file, encoding="utf-8-sig", newline="") as f:
+        with open(file, "rb") as f:
             return f.read()
     except FileNotFoundError:
         raise SessionError(
             f"{file}: file not found (a session folder holds {META_FILE}, {SENSORS_FILE} "
             f"and optionally {MOCAP_FILE})"
         ) from None
-    except UnicodeDecodeError as e:
-        raise SessionError(f"{file}: not UTF-8 text (byte {e.start}: {e.reason})") from None
     except OSError as e:
         raise SessionError(f"{file}: cannot read ({e.strerror})") from None
 
 
+def _decode(file: str, raw: bytes) -> str:
+    try:
+        return raw.decode("utf-8-sig")
+    except UnicodeDecodeError as e:
+        raise SessionError(f"{file}: not UTF-8 text (byte {e.start}: {e.reason})") from None
+
+
 def _read_csv(
-    file: str, required: Sequence[str], optional: Sequence[str], context: str
+    file: str, required: Sequence[str], optional: Sequence[str], context: str,
+    rename: Mapping[str, str] | None = None,
 ) -> dict[str, np.ndarray]:
     """The ``required`` and present ``optional`` columns of a CSV file as float64 arrays.
 
+    ``rename`` (``meta.json``'s ``mocap_columns``) gives the file's name of a required column
+    where it differs from ours (``_columns_for``); the result is keyed by our names.
+
     Blank lines are skipped; an empty cell or ``nan`` is NaN; ``t`` (the first required
     column) must be present in every row, finite and strictly increasing; no cell may be
-    infinite or text. A fast path (``np.loadtxt``) reads well-formed files; anything it cannot
-    read, or any problem in what it read, is read again cell by cell to report the first
-    problem with its line number.
+    infinite or text. A fast path (pyarrow, else ``np.loadtxt``) reads well-formed files;
+    anything it cannot read, or any problem in what it read, is read again cell by cell to
+    report the first problem with its line number.
     """
-    text = _read_text(file)
-    header_line, _, body = text.partition("\n")
+    raw = _read_bytes(file)
+    text = _decode(file, raw)
+    nl = text.find("\n")
+    header_line = text if nl < 0 else text[:nl]
     header = [name.strip() for name in next(csv.reader([header_line.rstrip("\r")]), [])]
     if not any(header):
         raise SessionError(f"{file}, line 1: expected a header row of column names, got none")
+    ours = (*required, *(n for n in optional if n in header))
+    if rename:
+        required = _columns_for(file, required, header, rename, context)
     wanted = (*required, *(n for n in optional if n in header))
     missing = [n for n in required if n not in header]
     if missing:
@@ -68,8 +89,12 @@ def _read_csv(
             raise SessionError(f"{file}, line 1: column {name!r} appears more than once")
     index = [header.index(n) for n in wanted]
 
-    values = _parse_fast(body, len(header), index)
+    values = _parse_arrow(raw, len(header), index)
+    del raw
+    if values is None:
+        values = _parse_fast("" if nl < 0 else text[nl + 1:], len(header), index)
     if values is None or _first_problem(values, wanted) is not None:
+        body = "" if nl < 0 else text[nl + 1:]
         values, lines = _parse_slow(file, body, header, wanted, index)
         if not lines:
             raise SessionError(f"{file}: no data rows after the header line")
@@ -77,7 +102,70 @@ def _read_csv(
         if problem is not None:
             row, message = problem
             raise SessionError(f"{file}, line {lines[row]}{message}")
-    return {name: np.ascontiguousarray(values[:, j]) for j, name in enumerate(wanted)}
+    return {name: np.ascontiguousarray(values[:, j]) for j, name in enumerate(ours)}
+
+
+def _columns_for(file: str, names: Sequence[str], available: Sequence[str],
+                 mapping: Mapping[str, str], context: str) -> list[str]:
+    """The file's column (or channel label) for each of our ``names``: ``mapping[name]``
+    (``meta.json``'s ``mocap_columns``) where the file has it, else the name itself (so a
+    session written back with our names still reads); a one-line ``SessionError`` naming the
+    first of ours that matches nothing, what the file has, and ``mocap_columns``."""
+    out = []
+    for name in names:
+        theirs = mapping.get(name)
+        if theirs is not None and theirs in available:
+            out.append(theirs)
+        elif name in available:
+            out.append(name)
+        else:
+            via = (f"nor {theirs!r} (its name in meta.json's mocap_columns)" if theirs is not None
+                   else "and meta.json's mocap_columns names no other column for it")
+            raise SessionError(
+                f"{file}: no column {name!r} {via} ({context}); it has {_listing(available)}"
+                f"; map each of our angles to its column in mocap_columns, e.g. "
+                f'"mocap_columns": {{"{name}": "<column>"}}')
+    return out
+
+
+def _listing(names: Sequence[str], most: int = 10) -> str:
+    """Names for a message: quoted, the first ``most`` and how many more."""
+    shown = ", ".join(repr(n) for n in names[:most])
+    more = f" and {len(names) - most} more" if len(names) > most else ""
+    return f"{shown}{more}" if names else "no columns"
+
+
+def _parse_arrow(raw: bytes, n_cols: int, index: list[int]) -> np.ndarray | None:
+    """The wanted columns of the data rows via pyarrow's CSV reader (several threads, about 8x
+    ``np.loadtxt`` on an hour of readings: benchmarks/front_door.py), or None when pyarrow is
+    not installed or the file is not plain numbers (the other paths then name the problem).
+
+    Reads exactly what the format allows: an empty cell, ``nan`` or ``NaN`` is NaN, anything
+    else must be a number (the same float64 values as ``float``)."""
+    try:
+        import pyarrow as pa
+        import pyarrow.csv as pacsv
+    except ImportError:
+        return None
+    names = [f"c{i}" for i in range(n_cols)]
+    wanted = [names[i] for i in index]
+    try:
+        table = pacsv.read_csv(
+            io.BytesIO(raw),
+            read_options=pacsv.ReadOptions(column_names=names, skip_rows=1),
+            parse_options=pacsv.ParseOptions(delimiter=","),
+            convert_options=pacsv.ConvertOptions(
+                include_columns=wanted, column_types=dict.fromkeys(wanted, pa.float64()),
+                null_values=["", "nan", "NaN"], strings_can_be_null=False,
+                quoted_strings_can_be_null=False))
+    except (pa.ArrowException, ValueError):
+        return None
+    if table.num_rows == 0:
+        return None
+    out = np.empty((table.num_rows, len(wanted)))
+    for j, name in enumerate(wanted):
+        out[:, j] = table.column(name).to_numpy(zero_copy_only=False)
+    return out
 
 
 def _parse_fast(body: str, n_cols: int, index: list[int]) -> np.ndarray | None:
@@ -171,7 +259,7 @@ def _write_csv(file: str, header: Sequence[str], t: np.ndarray, values: np.ndarr
     fmt = ",".join(["%r"] + [f"%.{int(digits)}g"] * values.shape[1])
     rows = np.column_stack([np.asarray(t, dtype=np.float64), values]).tolist()
     body = "\n".join([fmt % tuple(row) for row in rows]).replace("nan", "")
-    with open(file, "w", encoding="utf-8", newline="") as f:
+    with atomic_write(file, encoding="utf-8", newline="") as f:
         f.write(",".join(header) + "\n")
         if body:
             f.write(body + "\n")

@@ -1,11 +1,13 @@
 """Recorded sessions: the ``kckf-session/1`` interchange format, validation and mocap alignment.
 
 A session is one folder holding ``meta.json``, ``sensors.csv`` and optionally ``mocap.csv``
-(``../shared/spec/session-format.md``). ``read_session`` turns it into a ``Session`` of float64
-NumPy arrays in the robot's column order, and rejects a malformed file with a one-line
-``SessionError`` that names the file, the line and the column; ``write_session`` writes one
-back. ``align_mocap`` interpolates motion-capture frames onto the sensor clock (the ground
-truth of every error figure).
+(``../shared/spec/session-format.md``); the same data may come in other containers, one reader
+each: the motion capture as OpenSim Storage (``mocap.mot``/``.sto``, ``_storage``), sensors and
+motion capture as an XDF recording (``recording.xdf``, ``_xdf``). ``read_session`` turns any of
+them into the same ``Session`` of float64 NumPy arrays in the robot's column order, and rejects
+a malformed file with a one-line ``SessionError`` that names the file, the line and the column;
+``write_session`` writes one back (as CSV). ``align_mocap`` interpolates motion-capture frames
+onto the sensor clock (the ground truth of every error figure).
 
 Plain NumPy and the standard library: this is the edge of the package, the numerical core
 never imports it.
@@ -22,12 +24,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ._atomic import atomic_write
+from ._containers import _s, read_containers  # noqa: F401 (_s: tests read it here)
 from ._csvio import (
     META_FILE,
     MOCAP_FILE,
     SENSORS_FILE,
     SessionError,
-    _read_csv,
     _read_text,
     _write_csv,
 )
@@ -37,7 +40,9 @@ from ._params import hall_arrays
 from ._robot import Robot
 
 FORMAT = "kckf-session/1"
-#: ``meta.json`` keys this module reads; any other key goes to ``Session.extra_meta``.
+#: ``meta.json`` keys this module reads into ``Session`` fields; any other key (among them
+#: ``mocap_columns`` and ``xdf_streams``, which say how to read the files) goes to
+#: ``Session.extra_meta``, and ``write_session`` writes it back.
 META_KEYS = (
     "format", "joints", "sample_rate_hz", "mocap_time_offset_s", "hall_models", "description",
     "hall_v_range", "gyro_range_rad_s",
@@ -71,6 +76,9 @@ class Session:
             ``hall_v_range`` and ``gyro_range_rad_s``), ``None`` when the session states
             none (the filter's parameters then decide).
         path: the folder it was read from, if any.
+        sensors_file, mocap_file: the files in ``path`` the sensors and the motion capture
+            were read from (``sensors.csv`` or ``recording.xdf``; ``mocap.csv``,
+            ``mocap.mot``, ``mocap.sto`` or ``recording.xdf``), named in messages.
 
     The arrays are validated (and numeric arrays converted to float64) on construction; they
     are not meant to be modified afterwards (``truth()`` is cached).
@@ -97,6 +105,8 @@ class Session:
     extra_meta: dict = field(default_factory=dict)
     path: str | None = None
     limits: SensorLimits | None = None
+    sensors_file: str = SENSORS_FILE
+    mocap_file: str = MOCAP_FILE
     _truth: np.ndarray | None = field(default=None, init=False, repr=False)
 
     def __post_init__(self):
@@ -136,6 +146,10 @@ class Session:
                 f"Session.extra_meta: expected a dict, got {type(self.extra_meta).__name__}"
             )
         self.extra_meta = dict(self.extra_meta)
+        for name in ("sensors_file", "mocap_file"):
+            if not isinstance(getattr(self, name), str):
+                raise ValueError(f"Session.{name}: expected a file name (str), got "
+                                 f"{type(getattr(self, name)).__name__}")
         clash = sorted(set(self.extra_meta) & set(META_KEYS))
         if clash:
             raise ValueError(
@@ -265,8 +279,10 @@ def read_session(path: str | os.PathLike, *, require_mocap: bool = False,
     """Read and validate a ``kckf-session/1`` folder.
 
     Args:
-        path: the session folder (``meta.json``, ``sensors.csv``, optional ``mocap.csv``).
-        require_mocap: raise when ``mocap.csv`` is absent (to fit or evaluate).
+        path: the session folder: ``meta.json``; the sensors in ``sensors.csv`` or
+            ``recording.xdf``; the motion capture (optional) in ``mocap.csv``, ``mocap.mot``,
+            ``mocap.sto`` or a stream of ``recording.xdf``.
+        require_mocap: raise when there is no motion capture (to fit or evaluate).
         plausible: also reject a session that is well formed but implausible
             (``check_plausible``: timestamps that are not in seconds, mocap angles that are
             not in radians); ``False`` reads it anyway.
@@ -314,46 +330,14 @@ def read_session(path: str | os.PathLike, *, require_mocap: bool = False,
     limits = _limits_of(meta, meta_path)
 
     context = f"the robot in {META_FILE} has joints {robot.spec}"
-    sensors_path = os.path.join(folder, SENSORS_FILE)
-    gyro_used = set(robot.used_gyro_columns)
-    cols = _read_csv(
-        sensors_path,
-        required=("t", *robot.used_gyro_columns, *robot.hall_names),
-        optional=tuple(n for n in robot.gyro_names if n not in gyro_used),
-        context=context,
-    )
-    t = cols["t"]
-    nan = np.full_like(t, np.nan)
-    gyro = np.stack([cols.get(n, nan) for n in robot.gyro_names], axis=1)
-    hall_v = np.stack([cols[n] for n in robot.hall_names], axis=1)
-
-    mocap_path = os.path.join(folder, MOCAP_FILE)
-    mocap_t = mocap = None
-    if os.path.exists(mocap_path):
-        mcols = _read_csv(
-            mocap_path, required=("t", *robot.angle_names), optional=(), context=context
-        )
-        mocap_t = mcols["t"]
-        mocap = np.stack([mcols[n] for n in robot.angle_names], axis=1)
-        lo, hi = mocap_t[0] + offset_s, mocap_t[-1] + offset_s
-        if not np.any((t >= lo) & (t <= hi)):
-            raise SessionError(
-                f"{mocap_path}: no overlap with the sensors (mocap covers {_s(lo)}-{_s(hi)} s "
-                f"in sensor time, sensors {_s(t[0])}-{_s(t[-1])} s); check "
-                f"mocap_time_offset_s in {META_FILE}"
-            )
-    elif require_mocap:
-        raise SessionError(
-            f"{mocap_path}: file not found; motion capture (t and {', '.join(robot.angle_names)})"
-            " is needed to evaluate or to fit on the RMSE (kckf fit --loss nll fits on the Hall"
-            " readings alone)"
-        )
+    t, gyro, hall_v, mocap_t, mocap, sensors_file, mocap_file = read_containers(
+        folder, meta, robot, offset_s, require_mocap=require_mocap, context=context)
 
     session = Session(
         robot=robot, t=t, gyro=gyro, hall_v=hall_v, sample_rate_hz=float(sample_rate_hz),
         mocap_t=mocap_t, mocap=mocap, mocap_time_offset_s=float(offset_s),
         hall_models=hall_models, description=description, extra_meta=extra_meta, path=folder,
-        limits=limits,
+        limits=limits, sensors_file=sensors_file, mocap_file=mocap_file,
     )
     if plausible:
         check_plausible(session)
@@ -370,12 +354,13 @@ def check_plausible(session: Session) -> None:
 
     ``read_session(..., plausible=False)`` (the commands' ``--accept-implausible``) skips it."""
     folder = session.path or "session"
+    sensors_path = os.path.join(folder, session.sensors_file)
     if session.n_steps > 1:
         med = float(np.median(np.diff(session.t)))
         expected = 1.0 / session.sample_rate_hz
         if not expected / STEP_FACTOR <= med <= expected * STEP_FACTOR:
             raise SessionError(
-                f"{os.path.join(folder, SENSORS_FILE)}, column 't': the median time step is "
+                f"{sensors_path}, column 't': the median time step is "
                 f"{med:.6g} s, but {META_FILE}'s sample_rate_hz = {session.sample_rate_hz:g} Hz "
                 f"means {expected:.6g} s (t must be in seconds; timestamps in milliseconds?); "
                 "fix the file or sample_rate_hz, or pass --accept-implausible")
@@ -385,7 +370,8 @@ def check_plausible(session: Session) -> None:
             k = int(np.argmax(big.any(axis=0)))
             worst = float(np.nanmax(np.abs(session.mocap[:, k])))
             raise SessionError(
-                f"{os.path.join(folder, MOCAP_FILE)}, column {session.robot.angle_names[k]!r}: "
+                f"{os.path.join(folder, session.mocap_file)}, column "
+                f"{session.robot.angle_names[k]!r}: "
                 f"|angle| reaches {worst:.6g}, beyond 2 pi (angles must be in rad; degrees?); "
                 "fix the file, or pass --accept-implausible")
 
@@ -483,7 +469,7 @@ def write_session(session: Session, path: str | os.PathLike, digits: int = 9) ->
         **(session.limits.to_meta() if session.limits is not None else {}),
         **session.extra_meta,
     }
-    with open(os.path.join(folder, META_FILE), "w", encoding="utf-8") as f:
+    with atomic_write(os.path.join(folder, META_FILE), encoding="utf-8") as f:
         json.dump(meta, f, indent=2)
         f.write("\n")
     _write_csv(
@@ -549,8 +535,3 @@ def _scalar(name: str, x, *, positive: bool = False) -> float:
 def _prefixed(where: str, error: Exception) -> str:
     message = str(error)
     return message if message.startswith(where) else f"{where}: {message}"
-
-
-def _s(x: float) -> str:
-    """Seconds for a message: at most 6 decimals, always with a decimal point."""
-    return repr(round(float(x), 6))
