@@ -11,6 +11,7 @@ import json
 import os
 from collections.abc import Callable, Iterator
 
+from ._atomic import atomic_write
 from ._fit import FitConfig, fit, fit_info
 from ._params import save_params
 from ._report import (
@@ -96,7 +97,7 @@ def run_demo(root: str, out: str, steps: int, learning_rate: float,
         yield (format_table(doc["methods"], robot, methods, title) + "\n"
                f"fitted KCKF mean RMSE {fit_mean:.3f} deg = {100 * fit_mean / paper:.0f} % of "
                f"the paper-default KCKF's {paper:.3f} deg (fit: {result.seconds:.1f} s)")
-    with open(os.path.join(out, "results.json"), "w") as f:
+    with atomic_write(os.path.join(out, "results.json")) as f:
         json.dump(report, f, indent=2)
-    with open(os.path.join(out, "table.md"), "w") as f:
+    with atomic_write(os.path.join(out, "table.md")) as f:
         f.write("\n".join(md))

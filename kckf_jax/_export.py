@@ -15,6 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._atomic import atomic_write
 from ._gaps import GapPolicy
 from ._health import init_health
 from ._kernel import estimated, init_state
@@ -80,7 +81,7 @@ def export_step(params: Params, path: str, method: str = "kckf", baked: bool = T
     }
     head = json.dumps(header).encode()
     blob = exported.serialize()
-    with open(path, "wb") as f:
+    with atomic_write(path, "wb") as f:
         f.write(MAGIC)
         f.write(len(head).to_bytes(8, "little"))
         f.write(head)

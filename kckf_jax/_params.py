@@ -353,13 +353,12 @@ def params_from_dict(doc: object, where: str = "parameters", dtype=None) -> Para
 def save_params(params: Params, path: str, fit_info: Mapping | None = None) -> None:
     """Write ``params`` as JSON (atomically: a crash never leaves half a file)."""
     import json
-    import os
 
-    tmp = f"{path}.tmp"
-    with open(tmp, "w") as f:
+    from ._atomic import atomic_write
+
+    with atomic_write(path) as f:
         json.dump(params_to_dict(params, fit_info), f, indent=2)
         f.write("\n")
-    os.replace(tmp, path)
 
 
 def load_params(path: str, dtype=None) -> Params:

@@ -221,15 +221,13 @@ def write_estimates(path: str, session: Session, est) -> None:
     ``mocap.csv``; an angle the method does not estimate is left out, a NaN is an empty cell."""
     import os
 
+    from ._csvio import _write_csv
+
     robot = session.robot
     names = [n for k, n in enumerate(robot.angle_names) if np.isfinite(est.angles[:, k]).any()]
     cols = [robot.angle_names.index(n) for n in names]
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-    with open(path, "w") as f:
-        f.write(",".join(["t", *names]) + "\n")
-        for t, row in zip(session.t, est.angles[:, cols]):
-            f.write(repr(float(t)) + "," + ",".join(
-                "" if not np.isfinite(v) else format(float(v), ".9g") for v in row) + "\n")
+    _write_csv(path, ["t", *names], session.t, np.asarray(est.angles)[:, cols])
 
 
 def session_name(path: str) -> str:

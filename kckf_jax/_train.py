@@ -28,6 +28,8 @@ import jax
 import optax
 from jaxtyping import Array, Float
 
+from ._atomic import atomic_write
+
 RAD2DEG = 180.0 / math.pi
 
 
@@ -172,13 +174,11 @@ def _eval(loss: AbstractLoss, params, batch):
 
 
 def _save_checkpoint(path: str, header: dict, tree) -> None:
-    tmp = f"{path}.tmp"
-    with open(tmp, "wb") as f:
+    with atomic_write(path, "wb") as f:
         head = json.dumps(header).encode()
         f.write(len(head).to_bytes(8, "little"))
         f.write(head)
         eqx.tree_serialise_leaves(f, tree)
-    os.replace(tmp, path)
 
 
 def _load_checkpoint(path: str, like):

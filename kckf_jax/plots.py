@@ -10,7 +10,14 @@ from collections.abc import Mapping
 
 import numpy as np
 
+from ._atomic import atomic_write
 from ._session import Session
+
+
+def _save(fig, path: str) -> None:
+    """``fig`` as PNG at ``path``, whole or not at all (``atomic_write``)."""
+    with atomic_write(path, "wb") as f:
+        fig.savefig(f, format="png", dpi=110)
 
 RAD2DEG = 180.0 / np.pi
 LABELS = {"kckf": "KCKF", "kf": "Std KF", "gyro": "Gyro", "hall_l": "Hall l", "hall_r": "Hall r"}
@@ -109,7 +116,7 @@ def plot_session(
         axes[-1, 0].set_xlabel("time (s)")
         fig.tight_layout()
         path = os.path.join(out_dir, f"{name}_{group}.png")
-        fig.savefig(path, dpi=110)
+        _save(fig, path)
         plt.close(fig)
         files.append(path)
     if nis:
@@ -129,7 +136,7 @@ def plot_session(
         ax.legend(fontsize=8)
         fig.tight_layout()
         path = os.path.join(out_dir, f"{name}_nis.png")
-        fig.savefig(path, dpi=110)
+        _save(fig, path)
         plt.close(fig)
         files.append(path)
     return files
@@ -150,6 +157,6 @@ def plot_drift(t: np.ndarray, errors_deg: Mapping[str, np.ndarray], path: str,
     ax.grid(alpha=0.3, which="both")
     ax.legend()
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    _save(fig, path)
     plt.close(fig)
     return path
