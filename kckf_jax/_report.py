@@ -109,9 +109,9 @@ def consistency_figures(sessions: Sequence[Session], method: str, estimates,
         valid = (valid > 0) & (var > 0)
         nis = np.where(valid, nu**2 / np.where(valid, var, 1.0), np.nan)
         nis_all.append(nis[np.isfinite(nis)])
-        with np.errstate(invalid="ignore"):
-            rows.append(np.nanmean(nis.reshape(nis.shape[0], -1), axis=1)
-                        if np.isfinite(nis).any() else np.full(nis.shape[0], np.nan))
+        flat = nis.reshape(nis.shape[0], -1)
+        used = np.isfinite(flat).sum(axis=1)  # rows with no reading used: NaN, no warning
+        rows.append(np.where(used > 0, np.nansum(flat, axis=1) / np.maximum(used, 1), np.nan))
         std = np.asarray(e.angle_std, np.float64)
         err = (np.asarray(e.angles, np.float64) - s.truth()) / np.where(std > 0, std, np.nan)
         nees_all.append(err[np.isfinite(err)] ** 2)

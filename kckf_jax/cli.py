@@ -13,7 +13,10 @@ import json
 import os
 import sys
 import time
+import warnings
 from collections.abc import Sequence
+
+from ._progress import Progress
 
 
 class UsageError(ValueError):
@@ -25,28 +28,6 @@ def _say(args, *lines: str) -> None:
     if not getattr(args, "quiet", False):
         for line in lines:
             print(line, file=sys.stderr)
-
-
-class Progress:
-    """A small progress bar on stderr, shown only on a terminal and without ``--quiet``."""
-
-    def __init__(self, total: int, label: str, quiet: bool = False):
-        self.total, self.label, self.n = max(total, 1), label, 0
-        self.on = not quiet and sys.stderr.isatty()
-        self.start = time.perf_counter()
-
-    def update(self, n: int = 1, info: str = "") -> None:
-        self.n += n
-        if self.on:
-            frac = min(self.n / self.total, 1.0)
-            bar = "#" * int(30 * frac)
-            el = time.perf_counter() - self.start
-            sys.stderr.write(f"\r{self.label} [{bar:<30}] {self.n}/{self.total} {el:5.1f}s {info}")
-            sys.stderr.flush()
-
-    def close(self) -> None:
-        if self.on:
-            sys.stderr.write("\n")
 
 
 def _read_sessions(paths: Sequence[str], require_mocap: bool = False, args=None):
@@ -266,61 +247,58 @@ def cmd_fit(args) -> int:
 def cmd_stream(args) -> int:
     import signal
 
+    from . import _stream as st
     from ._session import read_meta, read_session
-    from ._stream import (
-        PacketParser,
-        StreamingFilter,
-        low_latency,
-        open_sink,
-        open_source,
-        replay_path,
-        run_stream,
-    )
 
-    low_latency()  # before the first computation: it sets XLA's thread flags
+    st.low_latency()  # before the first computation: it sets XLA's thread flags
     method = _check_methods([args.method])[0]
     session = None
-    if replay_path(args.source):
-        session = read_session(replay_path(args.source),
+    if st.replay_path(args.source):
+        session = read_session(st.replay_path(args.source),
                                plausible=not args.accept_implausible)
-    robot, hall_models, limits = None, None, None
-    if args.meta:
-        robot, hall_models, limits = read_meta(args.meta)
-    elif session is not None:
-        robot, hall_models, limits = session.robot, session.hall_models, session.limits
+    robot, hall_models, limits = (
+        read_meta(args.meta) if args.meta else (None, None, None) if session is None
+        else (session.robot, session.hall_models, session.limits))
     params = _params_for(args, robot, hall_models, "the stream",
                          "the robot layout is unknown: give --meta meta.json, --params FILE or "
                          "a replay://SESSION source")
     if limits is not None:  # the recording's own statement about its hardware
         params = dataclasses.replace(params, limits=limits)
     gaps = _gaps(args)
-    sf = StreamingFilter(params, method, gap_s=gaps.gap_s, on_gap=gaps.on_gap,
-                         max_predict_s=gaps.max_predict_s)
-    sf.warmup()  # compiled before the source opens: no early packet waits for XLA
-    source = open_source(args.source, session, realtime=args.realtime)
-    sink = open_sink(args.sink, flush=session is None or args.realtime)
+    sf = st.StreamingFilter(params, method, gap_s=gaps.gap_s, on_gap=gaps.on_gap,
+                            max_predict_s=gaps.max_predict_s)
+    sf.warmup()  # compiled before the source opens (or an LSL stream is resolved)
+
+    def say(line: str) -> None:
+        print(f"kckf stream: {line}", file=sys.stderr, flush=True)
+
+    source = st.open_source(args.source, session, realtime=args.realtime, robot=params.robot,
+                            allow_from=args.allow_from, on_sender=lambda s: say(
+                                f"taking packets from {s} (the first sender heard; "
+                                "--allow-from chooses)"))
+    sink = st.open_sink(args.sink, flush=session is None or args.realtime, robot=params.robot)
     stop = {"now": False}
-
-    def on_signal(signum, frame):
-        stop["now"] = True
-
     for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, on_signal)
+        signal.signal(sig, lambda signum, frame: stop.update(now=True))
     source.open()
-    extra = ""
-    if hasattr(source, "rcvbuf_actual"):
-        extra = f", receive buffer {source.rcvbuf_actual} bytes"
-    print(f"kckf stream: listening on {source.description} (method {method}, "
-          f"{params.log_q.dtype}{extra})", file=sys.stderr, flush=True)
+    if getattr(source, "announce", ""):
+        say(source.announce)
+    buf = getattr(source, "rcvbuf_actual", None)
+    extra = f", receive buffer {buf} bytes" if buf else ""
+    say(f"listening on {source.description} (method {method}, {params.log_q.dtype}{extra})")
     try:
-        counts = run_stream(source, sink, sf, PacketParser(params.robot, limits=params.limits),
-                            max_packets=args.max_packets, idle_timeout=args.idle_timeout,
-                            should_stop=lambda: stop["now"])
+        counts = st.run_stream(source, sink, sf,
+                               st.PacketParser(params.robot, limits=params.limits),
+                               max_packets=args.max_packets, idle_timeout=args.idle_timeout,
+                               should_stop=lambda: stop["now"])
     finally:
         source.close()
+    if source.foreign:
+        _warn(args, ["packets from other senders not used (status foreign): "
+                     + ", ".join(f"{k} x{v}" for k, v in source.foreign.items())])
     faulty = counts.pop("faulty", {})
     if faulty:
-        _warn(args, ["kckf stream: faulty readings not used (limits "
+        _warn(args, ["faulty readings not used (limits "
                      f"{params.limits.describe()}; docs/faults.md): "
                      + ", ".join(f"{k} x{v}" for k, v in faulty.items())])
     _say(args, "kckf stream: " + ", ".join(f"{k} {v}" for k, v in counts.items()))
@@ -401,9 +379,8 @@ def cmd_demo(args) -> int:
             bar.close()
         bars.clear()
         _say(args, "", text)
-    _say(args, "", f"wrote {args.out}/table.md, {args.out}/results.json, "
-                   f"{args.out}/*_params.json and {args.out}/figures/ "
-                   f"({time.perf_counter() - t0:.1f} s)")
+    _say(args, "", f"wrote {args.out}/table.md, {args.out}/results.json, {args.out}/*_params"
+                   f".json and {args.out}/figures/ ({time.perf_counter() - t0:.1f} s)")
     return 0
 
 
@@ -520,9 +497,13 @@ def build_parser() -> argparse.ArgumentParser:
     t.set_defaults(func=cmd_fit)
 
     r = sub.add_parser("stream", parents=[common], help="live filtering of sensor packets")
-    r.add_argument("--source", required=True,
-                   help="udp://HOST:PORT, serial:///dev/ttyX?baud=B or replay://SESSION")
-    r.add_argument("--sink", default="stdout", help="stdout (default) or udp://HOST:PORT")
+    r.add_argument("--source", required=True, help="udp://HOST:PORT, serial:///dev/ttyX?baud=B, "
+                   "replay://SESSION or lsl://NAME (Lab Streaming Layer)")
+    r.add_argument("--sink", default="stdout",
+                   help="stdout (default), udp://HOST:PORT or lsl://NAME (+ NAME-status)")
+    r.add_argument("--allow-from", action="append", metavar="HOST[:PORT]",
+                   help="the sender to take packets from (repeatable; lsl://: its source id); "
+                        "default: the first heard; others get the status foreign")
     r.add_argument("--params", help="fitted parameters (kckf fit)")
     r.add_argument("--meta", help="meta.json giving the robot layout and Hall calibration")
     r.add_argument("--method", default="kckf")
@@ -582,7 +563,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         jax.config.update("jax_enable_x64", True)
     keep_compiled_programs()
     try:
-        return int(args.func(args) or 0)
+        with warnings.catch_warnings():  # a library's warning: one line for people, not raw
+            warnings.showwarning = lambda msg, cat, *a, **k: _warn(args, [f"{cat.__name__}: {msg}"])
+            return int(args.func(args) or 0)
     except KeyboardInterrupt:
         print("kckf: interrupted", file=sys.stderr)
         return 130

@@ -1,15 +1,21 @@
-"""Where packets come from and where estimates go: sources (UDP, serial, replay), sinks
-(stdout, UDP) and the loop that joins them through a ``StreamingFilter``."""
+"""Where packets come from and where estimates go: sources (UDP, serial, replay, LSL), sinks
+(stdout, UDP, LSL) and the loop that joins them through a ``StreamingFilter``.
+
+One robot per stream: a source that can hear several senders (UDP) takes packets from one,
+the first it hears or those ``allow_from`` names; any other sender's packet comes back as
+``Foreign`` and gets the status ``foreign``. What the operating system dropped before the
+source could read it is ``Source.dropped`` (UDP on Linux: the socket's overflow count)."""
 
 from __future__ import annotations
 
 import json
+import os
 import select
 import socket
 import sys
 import time
 import urllib.parse
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 from ._filter import StreamingFilter
@@ -23,49 +29,163 @@ class Oversized:
     n_bytes: int
 
 
+@dataclass
+class Foreign:
+    """What a source returns for a packet from a sender that is not the stream's robot."""
+
+    sender: str
+
+
 class Source:
-    """Yields ``bytes`` (one packet each) or ``Packet``s; ``None`` on a read timeout."""
+    """Yields ``bytes`` (one packet each) or ``Packet``s; ``None`` on a read timeout.
+
+    ``dropped``: packets the operating system dropped before they could be read, where it
+    says (else ``None``); ``foreign``: packets not used per other sender."""
 
     description = ""
+    dropped: int | None = None
+    foreign: dict[str, int] = {}
 
     def open(self) -> None: ...
 
-    def read(self, timeout: float) -> bytes | Packet | None:
+    def read(self, timeout: float) -> bytes | Packet | Oversized | Foreign | None:
         raise NotImplementedError
+
+    def count_dropped(self) -> int | None:
+        """Packets dropped so far before they could be read (``None``: not known)."""
+        return self.dropped
 
     def close(self) -> None: ...
 
 
+#: Linux's socket option that adds the count of datagrams dropped so far to each one received.
+SO_RXQ_OVFL = getattr(socket, "SO_RXQ_OVFL", 40 if sys.platform.startswith("linux") else None)
+
+
+def parse_allow_from(values: Sequence[str] | None) -> list[tuple[str, int | None]] | None:
+    """``--allow-from HOST[:PORT]`` values as ``(address, port or None)``; a host name is
+    looked up once, here. ``None`` when none were given."""
+    if not values:
+        return None
+    out = []
+    for v in values:
+        host, sep, port = v.rpartition(":") if ":" in v else (v, "", "")
+        if not sep:
+            host, port = v, ""
+        try:
+            number = int(port) if port else None
+            if number is not None and not 0 < number < 65536:
+                raise ValueError
+        except ValueError:
+            raise ValueError(f"--allow-from {v!r}: expected HOST or HOST:PORT, PORT 1-65535")\
+                from None
+        try:
+            address = socket.gethostbyname(host)
+        except OSError:
+            raise ValueError(f"--allow-from {v!r}: cannot resolve host {host!r}") from None
+        out.append((address, number))
+    return out
+
+
 class UdpSource(Source):
-    """``udp://HOST:PORT``: one datagram = one packet; a large receive buffer absorbs bursts."""
+    """``udp://HOST:PORT``: one datagram = one packet; a large receive buffer absorbs bursts.
+
+    Packets are taken from one sender: those ``allow_from`` names (``(address, port or
+    None)``, ``parse_allow_from``), else the first heard (``on_sender(sender)`` is told);
+    another sender's packet is returned as ``Foreign`` unread. ``dropped``: what the kernel
+    dropped because the receive buffer was full (``SO_RXQ_OVFL``, and the socket's count in
+    ``/proc/net/udp`` at ``close``, which also has what was dropped after the last read)."""
 
     def __init__(self, host: str, port: int, rcvbuf: int = 8 << 20,
-                 max_bytes: int = MAX_PACKET_BYTES):
+                 max_bytes: int = MAX_PACKET_BYTES,
+                 allow_from: Sequence[tuple[str, int | None]] | None = None,
+                 on_sender: Callable[[str], None] | None = None):
         self.host, self.port, self.rcvbuf, self.max_bytes = host, port, rcvbuf, max_bytes
         self.description = f"udp://{host}:{port}"
         self._buf = bytearray(max_bytes + 1)
+        self.allow_from = list(allow_from) if allow_from else None
+        self.on_sender = on_sender
+        self.sender: tuple[str, int] | None = None
+        self.foreign = {}
+        self._accepted: set[tuple[str, int]] = set()
 
     def open(self) -> None:
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, self.rcvbuf)
+        self._ovfl = False
+        if SO_RXQ_OVFL is not None:
+            try:
+                self.sock.setsockopt(socket.SOL_SOCKET, SO_RXQ_OVFL, 1)
+                self._ovfl = True
+                self.dropped = 0
+            except OSError:
+                pass
         self.sock.bind((self.host, self.port))
         self.rcvbuf_actual = self.sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF)
         self._timeout = None
+        self._inode = os.fstat(self.sock.fileno()).st_ino
 
     def read(self, timeout: float):
         if timeout != self._timeout:
             self.sock.settimeout(timeout)
             self._timeout = timeout
         try:
-            n, _ = self.sock.recvfrom_into(self._buf, len(self._buf), socket.MSG_TRUNC)
+            if self._ovfl:
+                n, anc, _, addr = self.sock.recvmsg_into([self._buf], 64, socket.MSG_TRUNC)
+                for level, kind, data in anc:
+                    if level == socket.SOL_SOCKET and kind == SO_RXQ_OVFL and len(data) >= 4:
+                        self.dropped = int.from_bytes(data[:4], sys.byteorder)
+            else:
+                n, addr = self.sock.recvfrom_into(self._buf, len(self._buf), socket.MSG_TRUNC)
         except TimeoutError:
             return None
+        if addr not in self._accepted and not self._accept(addr):
+            name = f"{addr[0]}:{addr[1]}"
+            self.foreign[name] = self.foreign.get(name, 0) + 1
+            return Foreign(name)
         if n > self.max_bytes:
             return Oversized(n)
         return bytes(self._buf[:n])
 
+    def _accept(self, addr: tuple[str, int]) -> bool:
+        if self.allow_from is not None:
+            ok = any(addr[0] == h and p in (None, addr[1]) for h, p in self.allow_from)
+        else:
+            ok = self.sender is None
+        if ok:
+            self._accepted.add(addr)
+            if self.sender is None:
+                self.sender = addr
+                if self.on_sender is not None:
+                    self.on_sender(f"{addr[0]}:{addr[1]}")
+        return ok
+
+    def count_dropped(self) -> int | None:
+        late = _proc_udp_drops(self._inode)
+        if late is not None:
+            self.dropped = max(self.dropped or 0, late)
+        return self.dropped
+
     def close(self) -> None:
         self.sock.close()
+
+
+def _proc_udp_drops(inode: int) -> int | None:
+    """The ``drops`` count of the UDP socket with this inode in ``/proc/net/udp`` (Linux),
+    else ``None``."""
+    try:
+        with open("/proc/net/udp") as f:
+            lines = f.read().splitlines()[1:]
+    except OSError:
+        return None
+    for line in lines:
+        cells = line.split()
+        if len(cells) >= 13 and cells[9] == str(inode):
+            try:
+                return int(cells[-1])
+            except ValueError:
+                return None
+    return None
 
 
 class SerialSource(Source):
@@ -134,13 +254,28 @@ class ReplaySource(Source):
         return Packet(float(s.t[i]), s.gyro[i].copy(), s.hall_v[i].copy(), "ok")
 
 
-def open_source(spec: str, session=None, realtime: bool = False) -> Source:
-    """Parse a ``--source`` argument (``udp://``, ``serial://``, ``replay://``)."""
+def open_source(spec: str, session=None, realtime: bool = False, robot=None,
+                allow_from: Sequence[str] | None = None,
+                on_sender: Callable[[str], None] | None = None) -> Source:
+    """Parse a ``--source`` argument (``udp://``, ``serial://``, ``replay://``, ``lsl://``).
+    ``allow_from``: ``--allow-from`` (UDP: ``HOST[:PORT]``; LSL: the stream's source id);
+    ``on_sender`` is told the sender a UDP source takes when none is named; ``robot``: the
+    layout an LSL stream's channel labels are matched to."""
     url = urllib.parse.urlparse(spec)
     if url.scheme == "udp":
         if not url.hostname or not url.port:
             raise ValueError(f"--source {spec!r}: expected udp://HOST:PORT")
-        return UdpSource(url.hostname, url.port)
+        return UdpSource(url.hostname, url.port, allow_from=parse_allow_from(allow_from),
+                         on_sender=on_sender)
+    if url.scheme == "lsl":
+        name = spec[len("lsl://"):]
+        if not name:
+            raise ValueError(f"--source {spec!r}: expected lsl://NAME (an LSL stream's name)")
+        if allow_from and len(allow_from) > 1:
+            raise ValueError("--allow-from: an LSL source takes one stream: give one source id")
+        from ._lsl import LslSource
+
+        return LslSource(name, robot, allow_from=allow_from[0] if allow_from else None)
     if url.scheme == "serial":
         query = urllib.parse.parse_qs(url.query)
         try:
@@ -150,12 +285,14 @@ def open_source(spec: str, session=None, realtime: bool = False) -> Source:
         if not url.path:
             raise ValueError(f"--source {spec!r}: expected serial:///dev/ttyX?baud=B")
         return SerialSource(url.path, baud)
+    if allow_from:
+        raise ValueError(f"--allow-from: {spec} has one sender; it applies to udp:// and lsl://")
     if url.scheme == "replay":
         if session is None:
             raise ValueError(f"--source {spec!r}: the session could not be read")
         return ReplaySource(session, realtime)
-    raise ValueError(f"--source {spec!r}: expected udp://HOST:PORT, serial:///dev/ttyX?baud=B "
-                     "or replay://SESSION")
+    raise ValueError(f"--source {spec!r}: expected udp://HOST:PORT, serial:///dev/ttyX?baud=B, "
+                     "replay://SESSION or lsl://NAME")
 
 
 def replay_path(spec: str) -> str | None:
@@ -197,13 +334,19 @@ class UdpSink:
         self.sock.close()
 
 
-def open_sink(spec: str, flush: bool = True):
+def open_sink(spec: str, flush: bool = True, robot=None):
+    """Parse a ``--sink`` argument (``stdout``, ``udp://HOST:PORT``, ``lsl://NAME``: an outlet
+    of ``robot``'s angles and the marker stream ``NAME-status``)."""
     if spec in ("stdout", "-"):
         return StdoutSink(flush)
     url = urllib.parse.urlparse(spec)
     if url.scheme == "udp" and url.hostname and url.port:
         return UdpSink(url.hostname, url.port)
-    raise ValueError(f"--sink {spec!r}: expected stdout or udp://HOST:PORT")
+    if url.scheme == "lsl" and spec[len("lsl://"):]:
+        from ._lsl import LslSink
+
+        return LslSink(spec[len("lsl://"):], robot)
+    raise ValueError(f"--sink {spec!r}: expected stdout, udp://HOST:PORT or lsl://NAME")
 
 
 # ---------------------------------------------------------------------------- loop
@@ -213,8 +356,9 @@ def run_stream(source: Source, sink, sf: StreamingFilter, parser: PacketParser, 
                poll_s: float = 0.1) -> dict:
     """Read, filter and write until the source ends, ``max_packets`` packets were read,
     nothing arrived for ``idle_timeout`` seconds, or ``should_stop()``. Returns the count of
-    packets, of each status, and (``"faulty"``) of each column's faulty readings by kind
-    (``"hall1_x_l railed": n``)."""
+    packets, of each status, ``"dropped"`` (what the operating system dropped before the
+    source could read it, where it says: ``Source.count_dropped``), and (``"faulty"``) of
+    each column's faulty readings by kind (``"hall1_x_l railed": n``)."""
     import gc
 
     counts = {s: 0 for s in STATUSES}
@@ -238,6 +382,8 @@ def run_stream(source: Source, sink, sf: StreamingFilter, parser: PacketParser, 
         n += 1
         if isinstance(item, Oversized):
             pkt = parser.empty("oversized", f"{item.n_bytes} bytes, limit {parser.max_bytes}")
+        elif isinstance(item, Foreign):
+            pkt = parser.empty("foreign", f"from {item.sender}")
         else:
             pkt = parser.check(item) if isinstance(item, Packet) else parser.parse(item)
         rec = sf.push(pkt)  # may name more (a sensor isolated over time)
@@ -248,6 +394,9 @@ def run_stream(source: Source, sink, sf: StreamingFilter, parser: PacketParser, 
         sink.write(rec)
     sink.close()
     out = {"packets": n, **{k: v for k, v in counts.items() if v}}
+    dropped = source.count_dropped()
+    if dropped is not None:
+        out["dropped"] = dropped
     if faulty:
         out["faulty"] = faulty
     return out

@@ -28,9 +28,9 @@ from .._screen import FAULT_KINDS, screen
 #: Skipped packets (the state is unchanged): ``malformed`` (not UTF-8 JSON, not an
 #: object), ``oversized``, ``missing_t``, ``bad_t`` (not a finite number),
 #: ``out_of_order`` (``t`` not after the previous packet's), ``rejected`` (the update was
-#: not finite).
+#: not finite), ``foreign`` (from another sender than the stream's one robot: not read).
 STATUSES = ("ok", "masked", "gap", "malformed", "oversized", "missing_t", "bad_t",
-            "out_of_order", "rejected")
+            "out_of_order", "rejected", "foreign")
 USED = ("ok", "masked", "gap")
 MAX_PACKET_BYTES = 8192
 
