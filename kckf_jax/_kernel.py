@@ -183,6 +183,7 @@ def init_state(params: Params, method: str = "kckf") -> FilterState:
     return FilterState(z0, jnp.zeros((0, 0), dtype), hold)
 
 
+@eqx.filter_jit  # one program, not a dozen op-by-op ones, when called outside a trace
 def init_states(params: Params, method: str, n: int) -> FilterState:
     """``init_state`` for each of ``n`` trials: a leading axis of ``n`` on every leaf (the
     batch of states the paths carry)."""

@@ -32,7 +32,8 @@ TABLE_LABELS = {"gyro": "Gyro", "hall_l": "Hall l", "hall_r": "Hall r", "kf": "S
 
 
 def data_faults(sessions: Sequence[Session], params: Params | None = None,
-                gaps: GapPolicy = GapPolicy(), method: str = "kckf") -> tuple[dict, list[str]]:
+                gaps: GapPolicy = GapPolicy(), method: str = "kckf",
+                codes: Sequence[np.ndarray] | None = None) -> tuple[dict, list[str]]:
     """What is wrong with the data, before any filter runs: per session, the readings the
     filter does not use because they cannot be measurements (``_screen``: outside the
     physical range, railed, unreachable, saturated) or that stopped following their joint
@@ -44,16 +45,21 @@ def data_faults(sessions: Sequence[Session], params: Params | None = None,
     to say), the set-up mistakes the first seconds show (``"setup"``: ``setup_check``; a
     joint whose angle cannot be estimated is a ``ValueError`` naming it) and one line for
     people per finding. ``method``: whose model of the gyros judges them (``kckf3d``: no two
-    gyros measure the same rate, ``_screen.stand_ins``)."""
+    gyros measure the same rate, ``_screen.stand_ins``). ``codes``: each session's fault
+    codes where a filter of ``method`` already screened it (``Estimate.faults``), so the
+    readings are not judged twice."""
     faults, out_of_range, gap_doc, setup, lines = {}, {}, {}, {}, []
-    for s, p in zip(sessions, session_params(sessions, params)):
+    for i, (s, p) in enumerate(zip(sessions, session_params(sessions, params))):
         key = s.path or "session"
         names = s.robot.gyro_names + s.robot.hall_names
-        codes = np.asarray(series_faults(p, session_series(s, p.log_q.dtype), method))
-        faults[key] = fault_stretches(s.t, codes, names)
+        if codes is not None:
+            codes_i = np.asarray(codes[i])
+        else:
+            codes_i = np.asarray(series_faults(p, session_series(s, p.log_q.dtype), method))
+        faults[key] = fault_stretches(s.t, codes_i, names)
         cols = {}
-        for j in np.flatnonzero((codes == OUT_OF_RANGE).any(axis=0)):
-            rows = np.flatnonzero(codes[:, j] == OUT_OF_RANGE)
+        for j in np.flatnonzero((codes_i == OUT_OF_RANGE).any(axis=0)):
+            rows = np.flatnonzero(codes_i[:, j] == OUT_OF_RANGE)
             cols[names[j]] = {"count": int(rows.size), "first_t_s": float(s.t[rows[0]])}
         if cols:
             out_of_range[key] = cols
@@ -153,13 +159,18 @@ def evaluate_sessions(sessions: Sequence[Session], methods: Sequence[str],
     # method models them (``_screen.stand_ins``, ``setup_check``), so that the paper's
     # first-order checks do not refuse data that kckf3d is there for; each method's own
     # estimates are screened by its own model either way (``filter_sessions``).
-    exact = any(m == "kckf3d" for m in methods)
-    faults, warnings = data_faults(sessions, params, gaps, "kckf3d" if exact else "kckf")
+    judge = "kckf3d" if any(m == "kckf3d" for m in methods) else "kckf"
+    ests = {}
+    if judge in methods:  # its own screening is the data's: the readings judged once
+        ests[judge] = filter_sessions(sessions, judge, params, gaps=gaps, smooth=smooth,
+                                      path=path)
+    faults, warnings = data_faults(sessions, params, gaps, judge,
+                                   [e.faults for e in ests[judge]] if ests else None)
     out, angles, nis_rows = {}, {}, {}
     for m in methods:
         kalman = m in KALMAN_METHODS
-        est = filter_sessions(sessions, m, params, gaps=gaps, smooth=smooth and kalman,
-                              path=path)
+        est = ests.get(m) or filter_sessions(sessions, m, params, gaps=gaps,
+                                             smooth=smooth and kalman, path=path)
         angles[m] = [e.angles for e in est]
         out[m] = rmse_table(sessions, angles[m], burn_in_s)
         out[m]["path"] = "+".join(dict.fromkeys(e.path for e in est))

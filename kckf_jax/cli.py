@@ -102,9 +102,9 @@ def cmd_filter(args) -> int:
     method = _check_methods([args.method])[0]
     (session,) = _read_sessions([args.session], args=args)
     params = _load_params(args, [session])
-    _warn(args, data_faults([session], params, _gaps(args), method)[1])
     (est,) = filter_sessions([session], method, params, gaps=_gaps(args),
                              smooth=args.smooth, path=_one_shot())
+    _warn(args, data_faults([session], params, _gaps(args), method, [est.faults])[1])
     _warn(args, estimate_faults([session], method, [est]))
     write_estimates(args.output, session, est)
     _say(args, f"wrote {args.output}: {session.n_steps} rows of {method} estimates "
