@@ -15,7 +15,7 @@ import pytest
 
 from kckf_jax import PacketParser, Params, Robot, StreamingFilter, simulate, write_session
 from kckf_jax._stream import USED, UdpSource, run_stream
-from kckf_jax._stream._io import Foreign, parse_allow_from
+from kckf_jax._stream._io import parse_allow_from
 
 ROBOT = Robot.from_spec("x,y")
 LOCAL = "127.0.0.1"
