@@ -70,6 +70,7 @@ class _Stream(NamedTuple):
     fmt: str
     stamps: np.ndarray
     values: object  # (S, C) array, or a list of lists for a text stream
+    source_id: str = ""
 
 
 def read_xdf(file: str, robot: Robot, mocap_columns: Mapping[str, str],
@@ -161,7 +162,7 @@ def _stream(raw: dict) -> _Stream:
     return _Stream(str(_first(info, "name") or ""), labels, units,
                    str(_first(info, "channel_format") or ""),
                    np.asarray(raw.get("time_stamps", ()), dtype=np.float64),
-                   raw.get("time_series", []))
+                   raw.get("time_series", []), str(_first(info, "source_id") or ""))
 
 
 def _first(d, key):
@@ -173,7 +174,10 @@ def _first(d, key):
 def _choose(file: str, streams: list[_Stream], kind: str, names: Sequence[str],
             mapping: Mapping[str, str], pick: str | None) -> _Stream | None:
     """The stream holding ``names``: the one ``xdf_streams`` names, else the only one with
-    all of them; None when no stream has any of them; one-line errors otherwise."""
+    all of them; None when no stream has any of them; one-line errors otherwise. Our own
+    estimates recorded alongside (``kckf stream --sink lsl://``: source id ``kckf-...``,
+    the angles' labels) are never taken for motion capture unless ``xdf_streams`` names
+    them."""
 
     def found(s: _Stream) -> int:
         return sum((mapping.get(n) in s.labels) or (n in s.labels) for n in names)
@@ -186,6 +190,7 @@ def _choose(file: str, streams: list[_Stream], kind: str, names: Sequence[str],
                 f"{file}: {what} named {pick!r} ({META_FILE}'s xdf_streams.{kind}); the "
                 f"streams: {_describe(streams)}")
         return named[0]
+    streams = [s for s in streams if not s.source_id.startswith("kckf-")]
     full = [s for s in streams if found(s) == len(names)]
     if len(full) > 1:
         raise SessionError(

@@ -379,3 +379,16 @@ def test_xdf_refusals(tmp_path):
     with open(os.path.join(folder, "recording.xdf"), "wb") as f:
         f.write(b"XDF:\x01\x20\x02\x00\x01\x00\x00\x00<info><name>broken")
     assert error_of(folder).startswith(f"{folder}/recording.xdf: not a readable XDF file (")
+
+
+def test_our_own_estimates_recorded_alongside_are_not_motion_capture(tmp_path):
+    """LabRecorder recording the sensors, the mocap and ``kckf stream --sink lsl://``'s
+    outlet (the angles' labels, source id ``kckf-...``): the mocap stream is the mocap; with
+    no mocap stream, the session has none (not our estimates)."""
+    s = small_session()
+    ours = mocap_stream(s, name="kckf-exoshell-angles")
+    folder = xdf_folder(tmp_path / "a", s, [sensor_stream(s), ours, mocap_stream(s)])
+    got = read_session(folder)
+    np.testing.assert_allclose(got.mocap, s.mocap, rtol=1e-12, atol=1e-12)
+    folder = xdf_folder(tmp_path / "b", s, [sensor_stream(s), ours])
+    assert read_session(folder).mocap is None
