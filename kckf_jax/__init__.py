@@ -31,7 +31,10 @@ The public API (everything else lives in private modules; docs/architecture.md m
   ``FitResult``, ``FitInterrupted``, ``initial_params``, ``loss_fn``, ``make_batch`` (and its
   ``Batch``), ``shard_batch``;
 * live filtering and deployment: ``StreamingFilter``, ``PacketParser``, ``Packet``,
-  ``STATUSES``, ``low_latency``, ``export_step``;
+  ``STATUSES``, ``low_latency``, ``export_step``; where packets come from and go
+  (``Source``, which hands over packets, ``Oversized`` ones and ``Foreign`` ones from another
+  sender; ``open_source``, ``open_sink``, ``run_stream``; the Lab Streaming Layer's
+  ``LslSource`` and ``LslSink``, and ``lsl_loopback_config`` to keep LSL on this machine);
 * faulty readings (what the step does not use, and why): ``FAULT_KINDS``,
   ``fault_stretches`` (``Estimate.faults`` by column, kind and time);
 * analysis: ``observability_ranks``;
@@ -114,10 +117,19 @@ from ._simulate import simulate as simulate
 from ._smooth import smooth as smooth
 from ._smooth import smooth_batch as smooth_batch
 from ._stream import STATUSES as STATUSES
+from ._stream import Foreign as Foreign
+from ._stream import LslSink as LslSink
+from ._stream import LslSource as LslSource
+from ._stream import Oversized as Oversized
 from ._stream import Packet as Packet
 from ._stream import PacketParser as PacketParser
+from ._stream import Source as Source
 from ._stream import StreamingFilter as StreamingFilter
 from ._stream import low_latency as low_latency
+from ._stream import lsl_loopback_config as lsl_loopback_config
+from ._stream import open_sink as open_sink
+from ._stream import open_source as open_source
+from ._stream import run_stream as run_stream
 from ._train import FitInterrupted as FitInterrupted
 from ._train import FitResult as FitResult
 from ._version import __version__ as __version__

@@ -22,4 +22,6 @@ from ._packets import STATUSES as STATUSES
 from ._packets import USED as USED
 from ._packets import Packet as Packet
 from ._packets import PacketParser as PacketParser
+from ._source import Foreign as Foreign
+from ._source import Oversized as Oversized
 from ._source import Source as Source
