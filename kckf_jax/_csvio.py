@@ -11,7 +11,7 @@ import csv
 import io
 import math
 import warnings
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 
 import numpy as np
 
@@ -93,16 +93,29 @@ def _read_csv(
     del raw
     if values is None:
         values = _parse_fast("" if nl < 0 else text[nl + 1:], len(header), index)
-    if values is None or _first_problem(values, wanted) is not None:
-        body = "" if nl < 0 else text[nl + 1:]
-        values, lines = _parse_slow(file, body, header, wanted, index)
-        if not lines:
-            raise SessionError(f"{file}: no data rows after the header line")
-        problem = _first_problem(values, wanted)
-        if problem is not None:
-            row, message = problem
-            raise SessionError(f"{file}, line {lines[row]}{message}")
+    values = _checked(file, values, wanted, "no data rows after the header line",
+                      lambda: _parse_slow(file, "" if nl < 0 else text[nl + 1:], header, wanted,
+                                          index))
     return {name: np.ascontiguousarray(values[:, j]) for j, name in enumerate(ours)}
+
+
+def _checked(file: str, values: np.ndarray | None, names: Sequence[str], empty: str,
+             slow: Callable[[], tuple[np.ndarray, list[int]]]) -> np.ndarray:
+    """``values`` (a fast path's, None if it could not read the file) when they have no
+    problem (``_first_problem``); else the file read again cell by cell (``slow``: the values
+    and each row's line number; it raises on a malformed row or cell), and a one-line
+    ``SessionError`` naming the line of the first problem (``empty``: the message when there
+    are no rows)."""
+    if values is not None and _first_problem(values, names) is None:
+        return values
+    values, lines = slow()
+    if not lines:
+        raise SessionError(f"{file}: {empty}")
+    problem = _first_problem(values, names)
+    if problem is not None:
+        row, message = problem
+        raise SessionError(f"{file}, line {lines[row]}{message}")
+    return values
 
 
 def _columns_for(file: str, names: Sequence[str], available: Sequence[str],

@@ -25,7 +25,7 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from ._csvio import SessionError, _columns_for, _first_problem, _read_text
+from ._csvio import SessionError, _checked, _columns_for, _read_text
 
 #: The Storage files that may hold a session's motion capture, in place of ``mocap.csv``.
 STORAGE_FILES = ("mocap.mot", "mocap.sto")
@@ -77,15 +77,9 @@ def read_storage(file: str, names: Sequence[str], mapping: Mapping[str, str],
             raise SessionError(f"{file}, line {first + 1}: column {name!r} appears more than once")
     index = [header.index(n) for n in wanted]
     body = lines[first + 1:]
-    values = _parse_fast(body, len(header), index)
-    if values is None or _first_problem(values, wanted) is not None:
-        values, rows = _parse_slow(file, body, first + 2, header, wanted, index)
-        if not rows:
-            raise SessionError(f"{file}: no data rows after the column names (line {first + 1})")
-        problem = _first_problem(values, wanted)
-        if problem is not None:
-            k, message = problem
-            raise SessionError(f"{file}, line {rows[k]}{message}")
+    values = _checked(file, _parse_fast(body, len(header), index), wanted,
+                      f"no data rows after the column names (line {first + 1})",
+                      lambda: _parse_slow(file, body, first + 2, header, wanted, index))
     angles = values[:, 1:]
     if in_degrees:
         angles = angles * (math.pi / 180.0)
