@@ -6,8 +6,9 @@ import os
 
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
-from kckf_jax import Params, Robot, SensorSeries, _health
+from kckf_jax import Params, Robot, SensorSeries, SessionError, _health, read_session
 
 DEG = np.pi / 180
 
@@ -104,3 +105,12 @@ def default_compile_env() -> dict[str, str]:
     if not env["XLA_FLAGS"]:
         del env["XLA_FLAGS"]
     return env
+
+
+def error_of(folder, **kwargs) -> str:
+    """``read_session``'s refusal of ``folder``: a ``SessionError`` of one line."""
+    with pytest.raises(SessionError) as info:
+        read_session(folder, **kwargs)
+    message = str(info.value)
+    assert "\n" not in message, message
+    return message

@@ -10,9 +10,10 @@ import sys
 
 import numpy as np
 import pytest
+from helpers import error_of
 from xdf_writer import XdfStream, write_xdf
 
-from kckf_jax import Robot, Session, SessionError, read_session, simulate, write_session
+from kckf_jax import Robot, Session, read_session, simulate, write_session
 from kckf_jax.cli import main
 
 DEG = 180.0 / np.pi
@@ -20,14 +21,6 @@ T0 = 4711.25  # the LSL clock at the first sensor sample (seconds since the reco
 C = -1234.5  # the motion-capture machine's clock + C = the recorder's clock
 THEIRS = {"theta1_x": "lumbar_bending", "theta2_y": "lumbar_extension", "theta3_x": "l2_bend",
           "theta4_y": "l2_ext", "phi_x": "torso_list", "phi_y": "torso_tilt"}
-
-
-def error_of(folder, **kwargs) -> str:
-    with pytest.raises(SessionError) as info:
-        read_session(folder, **kwargs)
-    message = str(info.value)
-    assert "\n" not in message, message
-    return message
 
 
 def meta_of(folder) -> dict:

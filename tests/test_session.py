@@ -8,11 +8,11 @@ import os
 
 import numpy as np
 import pytest
+from helpers import error_of
 
 from kckf_jax import (
     Robot,
     Session,
-    SessionError,
     _csvio,
     _session,
     align_mocap,
@@ -90,14 +90,6 @@ def set_cell(lines: list[str], line_no: int, column: str, value: str) -> list[st
     cells = lines[line_no - 1].split(",")
     cells[header.index(column)] = value
     return lines[: line_no - 1] + [",".join(cells)] + lines[line_no:]
-
-
-def error_of(folder, **kwargs) -> str:
-    with pytest.raises(SessionError) as info:
-        read_session(folder, **kwargs)
-    message = str(info.value)
-    assert "\n" not in message, message
-    return message
 
 
 def random_session(rng, spec: str = SPEC, T: int = 200, F: int = 250) -> Session:
