@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from kckf_jax import PacketParser, Params, Robot, StreamingFilter, simulate, write_session
-from kckf_jax._stream import USED, UdpSource, run_stream
+from kckf_jax._stream import USED, UdpSource, open_source, run_stream
 from kckf_jax._stream._io import parse_allow_from
 
 ROBOT = Robot.from_spec("x,y")
@@ -138,6 +138,9 @@ def test_allow_from_values():
     for bad in ("127.0.0.1:0", "127.0.0.1:x", "no-such-host.invalid"):
         with pytest.raises(ValueError, match="--allow-from"):
             parse_allow_from([bad])
+    for one_sender in ("serial:///dev/ttyUSB0?baud=9600", "replay://somewhere"):
+        with pytest.raises(ValueError, match="has one sender"):
+            open_source(one_sender, allow_from=["127.0.0.1"])
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="SO_RXQ_OVFL is Linux's")

@@ -32,7 +32,7 @@ def parse_allow_from(values: Sequence[str] | None) -> list[tuple[str, int | None
         return None
     out = []
     for v in values:
-        host, sep, port = v.rpartition(":") if ":" in v else (v, "", "")
+        host, sep, port = v.rpartition(":")
         if not sep:
             host, port = v, ""
         try:
@@ -56,8 +56,9 @@ class UdpSource(Source):
     Packets are taken from one sender: those ``allow_from`` names (``(address, port or
     None)``, ``parse_allow_from``), else the first heard (``on_sender(sender)`` is told);
     another sender's packet is returned as ``Foreign`` unread. ``dropped``: what the kernel
-    dropped because the receive buffer was full (``SO_RXQ_OVFL``, and the socket's count in
-    ``/proc/net/udp`` at ``close``, which also has what was dropped after the last read)."""
+    dropped because the receive buffer was full (``SO_RXQ_OVFL`` on each datagram read, and
+    ``count_dropped``: the socket's count in ``/proc/net/udp``, which also has what was
+    dropped after the last read)."""
 
     def __init__(self, host: str, port: int, rcvbuf: int = 8 << 20,
                  max_bytes: int = MAX_PACKET_BYTES,
@@ -239,6 +240,8 @@ def open_source(spec: str, session=None, realtime: bool = False, robot=None,
         from ._lsl import LslSource
 
         return LslSource(name, robot, allow_from=allow_from[0] if allow_from else None)
+    if allow_from and url.scheme in ("serial", "replay"):
+        raise ValueError(f"--allow-from: {spec} has one sender; it applies to udp:// and lsl://")
     if url.scheme == "serial":
         query = urllib.parse.parse_qs(url.query)
         try:
@@ -248,8 +251,6 @@ def open_source(spec: str, session=None, realtime: bool = False, robot=None,
         if not url.path:
             raise ValueError(f"--source {spec!r}: expected serial:///dev/ttyX?baud=B")
         return SerialSource(url.path, baud)
-    if allow_from:
-        raise ValueError(f"--allow-from: {spec} has one sender; it applies to udp:// and lsl://")
     if url.scheme == "replay":
         if session is None:
             raise ValueError(f"--source {spec!r}: the session could not be read")
