@@ -4,7 +4,9 @@ The public API (everything else lives in private modules; docs/architecture.md m
 
 * layout and parameters: ``Robot``, ``Params`` (learnable), ``SensorLimits`` (the physical
   range of the readings), ``ParamsFileError``, ``load_params``, ``save_params``,
-  ``params_to_dict``;
+  ``params_to_dict``; ``SensorEffects`` (learned sensor effects beyond the paper's models,
+  each off unless named in ``EFFECTS``: a clock offset, gyro scales, the joints' play, Hall
+  curves beyond Eq. 1; ``Params.with_effects``);
 * the filter's kernel: ``SensorSeries``, ``FilterState``, ``Estimate``, ``METHODS``,
   ``init_state``, ``step``, ``scan_filter``, ``pad_series`` (the state's block layout and
   the paper's matrices are internals: ``kckf_jax._model``, which benchmarks and tests read);
@@ -49,6 +51,8 @@ from ._cpu_loops import CpuLoops as CpuLoops
 from ._cpu_loops import cpu_loops as cpu_loops
 from ._cpu_loops import enable_cpu_loops as enable_cpu_loops
 from ._demo import sample_data_dir as sample_data_dir
+from ._effects import EFFECTS as EFFECTS
+from ._effects import SensorEffects as SensorEffects
 from ._export import export_step as export_step
 from ._fit import Batch as Batch
 from ._fit import FitConfig as FitConfig

@@ -19,7 +19,7 @@ from ._atomic import atomic_write
 from ._gaps import GapPolicy
 from ._health import init_health
 from ._kernel import estimated, init_state
-from ._params import _LEAVES, Params
+from ._params import Params, get_leaf, leaf_names
 from ._screen import FAULT_KINDS
 from ._stream import stream_step_fn
 
@@ -51,16 +51,18 @@ def export_step(params: Params, path: str, method: str = "kckf", baked: bool = T
     x_size = 1 + 3 * robot.n_links + robot.n_hall
     spec_s = jax.ShapeDtypeStruct(s0.shape, dtype)
     spec_x = jax.ShapeDtypeStruct((x_size,), dtype)
-    sizes = [int(np.size(getattr(params, name))) for name in _LEAVES]
-    leaves = np.concatenate([np.ravel(np.asarray(getattr(params, n))) for n in _LEAVES])
+    names = leaf_names(params)
+    shapes = [np.shape(get_leaf(params, n)) for n in names]
+    sizes = [int(np.prod(shape, dtype=int)) for shape in shapes]
+    leaves = np.concatenate([np.ravel(np.asarray(get_leaf(params, n))) for n in names])
     if baked:
         exported = jax.export.export(jax.jit(lambda s, x: fn(s, x)))(spec_s, spec_x)
     else:
         cuts = np.cumsum(sizes)[:-1].tolist()
 
         def with_params(p_flat, s, x):
-            parts = jnp.split(p_flat, cuts)
-            p = eqx.tree_at(lambda q: [getattr(q, n) for n in _LEAVES], params, list(parts))
+            parts = [part.reshape(shape) for part, shape in zip(jnp.split(p_flat, cuts), shapes)]
+            p = eqx.tree_at(lambda q: [get_leaf(q, n) for n in names], params, parts)
             return fn(s, x, p)
 
         spec_p = jax.ShapeDtypeStruct(leaves.shape, dtype)
@@ -73,7 +75,7 @@ def export_step(params: Params, path: str, method: str = "kckf", baked: bool = T
         "x_size": x_size,
         "params_mode": "baked" if baked else "passed",
         "params": None if baked else leaves.tolist(),
-        "param_leaves": [[n, k] for n, k in zip(_LEAVES, sizes)],
+        "param_leaves": [[n, k] for n, k in zip(names, sizes)],
         "limits": params.limits.to_meta(),
         "fault_kinds": list(FAULT_KINDS),
         "gaps": {"gap_s": gaps.gap_s, "on_gap": gaps.on_gap,

@@ -24,6 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
+from ._effects import EFFECTS, angle_rates
 from ._gaps import GapPolicy
 from ._kernel import KALMAN_METHODS, SensorSeries, init_state, pad_series
 from ._likelihood import hall_nll
@@ -31,6 +32,7 @@ from ._params import _LEAVES, Params, with_floors
 from ._paths import AbstractPath, Auto, Sequential, as_path, regular_step
 from ._run import choose_path, screened
 from ._session import Session, split_at_gaps
+from ._smooth import smooth_batch
 from ._train import (
     AbstractLoss,
     FitInterrupted,
@@ -121,35 +123,49 @@ def auto_chunk(T: int, trials: int = 1) -> int | None:
 
 # ----------------------------------------------------------------------------- loss
 def per_angle_rmse(params: Params, batch: Batch, method: str = "kckf",
-                   remat_chunk: int | None = None, path: str | AbstractPath | None = None
-                   ) -> tuple[Array, Array]:
+                   remat_chunk: int | None = None, path: str | AbstractPath | None = None,
+                   smooth: bool = False) -> tuple[Array, Array]:
     """Pooled RMSE (rad) of every angle over all trials and steps with truth, and the counts.
 
     ``path`` computes the filter (default ``Auto`` with ``Sequential(remat_chunk)``: on
     concrete inputs the fastest that applies, under a transformation the sequential scan;
     ``fit`` chooses it on the concrete data beforehand, and so can a caller:
-    ``choose_path(params, batch.series).path``).
+    ``choose_path(params, batch.series).path``). ``smooth``: the fixed-interval smoothed
+    estimates are scored (``smooth_batch``, laid out as ``path`` lays out its smoother), the
+    output an offline user reads.
+
+    A learned clock offset (``Params.effects``, ``"offset"``: the motion capture lags the
+    sensors by ``tau``) compares each estimate, moved back by ``tau`` along the gyros' rate,
+    with the truth: ``angle(t - tau) ~ angle(t) - tau * rate(t)``.
 
     NaN-free by construction: missing truth is masked before it is subtracted, and the square
     root is guarded, so neither the loss nor its gradient is NaN when truth is missing.
     """
     path = Auto().for_loss(remat_chunk, gradient=False) if path is None else as_path(path)
-    n_trials = batch.truth.shape[0]
-    state = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (n_trials,) + x.shape),
-                                   init_state(params, method))
-    est = path.run(params, batch.series, method, state)[1]
-    err = jnp.where(batch.mask, est.angles - batch.truth, 0.0)
+    if smooth:
+        angles = smooth_batch(params, batch.series, method, path=path).angles
+    else:
+        n_trials = batch.truth.shape[0]
+        state = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (n_trials,) + x.shape),
+                                       init_state(params, method))
+        angles = path.run(params, batch.series, method, state)[1].angles
+    if params.effects is not None and params.effects.uses("offset"):
+        rate = angle_rates(params.robot, jnp.asarray(batch.series.gyro))
+        rate = jnp.where(jnp.isfinite(rate), rate, 0.0).astype(angles.dtype)
+        angles = angles - params.effects.time_offset_s * rate
+    err = jnp.where(batch.mask, angles - batch.truth, 0.0)
     n = jnp.sum(batch.mask, axis=(0, 1))
     mse = jnp.sum(err**2, axis=(0, 1)) / jnp.maximum(n, 1)
     return jnp.sqrt(mse + 1e-18), n
 
 
 def loss_fn(params: Params, batch: Batch, method: str = "kckf",
-            remat_chunk: int | None = None, path: str | AbstractPath | None = None) -> Array:
+            remat_chunk: int | None = None, path: str | AbstractPath | None = None,
+            smooth: bool = False) -> Array:
     """Mean over angles (joints and torso) of the pooled RMSE, rad: the quantity
     ``kckf evaluate`` reports as ``mean_rmse_deg``. Angles without truth are left out.
-    ``path`` as for ``per_angle_rmse``."""
-    rmse, n = per_angle_rmse(params, batch, method, remat_chunk, path)
+    ``path`` and ``smooth`` as for ``per_angle_rmse``."""
+    rmse, n = per_angle_rmse(params, batch, method, remat_chunk, path, smooth)
     has = n > 0
     return jnp.sum(jnp.where(has, rmse, 0.0)) / jnp.maximum(jnp.sum(has), 1)
 
@@ -163,9 +179,10 @@ class RmseLoss(AbstractLoss):
     path: AbstractPath = eqx.field(static=True)
     step_s: float | None = eqx.field(static=True, default=None)
     fallback: AbstractPath = eqx.field(static=True, default=Sequential())
+    smooth: bool = eqx.field(static=True, default=False)
 
     def __call__(self, params, batch):
-        return loss_fn(params, batch, self.method, path=self.path)
+        return loss_fn(params, batch, self.method, path=self.path, smooth=self.smooth)
 
     def refresh(self, params) -> RmseLoss:
         if self.path.recheck(params, self.method, self.step_s) is not None:
@@ -214,23 +231,26 @@ LOSSES = ("rmse", "nll", "rmse+nll")
 
 def make_loss(kind: str, params: Params, batch: Batch, method: str,
               remat_chunk: int | None, nll_weight: float = NLL_WEIGHT,
-              gradient: bool = True) -> AbstractLoss:
+              gradient: bool = True, smooth: bool = False) -> AbstractLoss:
     """The training loss ``kind`` (``LOSSES``) on ``batch``; ``gradient``: it will be
-    differentiated (the validation loss is not), which decides its path (``rmse_loss``)."""
+    differentiated (the validation loss is not), which decides its path (``rmse_loss``);
+    ``smooth``: the RMSE of the smoothed estimates (the likelihood of the readings is the
+    filter's either way: smoothing changes the estimates, not the data's likelihood)."""
     nll = NllLoss(method, Auto().for_loss(remat_chunk, gradient))
     if kind == "nll":
         return nll
-    rmse = rmse_loss(params, batch, method, remat_chunk, gradient)
+    rmse = rmse_loss(params, batch, method, remat_chunk, gradient, smooth)
     return rmse if kind == "rmse" else RmseNllLoss(rmse, nll, nll_weight)
 
 
 def rmse_loss(params: Params, batch: Batch, method: str, remat_chunk: int | None,
-              gradient: bool = True) -> RmseLoss:
+              gradient: bool = True, smooth: bool = False) -> RmseLoss:
     """The training loss on ``batch``, its path chosen on the concrete data and ``params``
     by the policy for a fitting loss (``Auto.for_loss``)."""
     policy = Auto().for_loss(remat_chunk, gradient)
     path = choose_path(params, batch.series, method, policy).path
-    return RmseLoss(method, path, regular_step(params, batch.series)[0], policy.sequential)
+    return RmseLoss(method, path, regular_step(params, batch.series)[0], policy.sequential,
+                    smooth)
 
 
 # ----------------------------------------------------------------------------- sharding
@@ -310,6 +330,10 @@ class FitConfig:
             log-likelihood of the Hall readings: no motion capture needed) or ``"rmse+nll"``.
         nll_weight: ``rmse+nll``'s weight on the likelihood, in deg of RMSE per nat per
             reading (docs/fitting.md says how the default was chosen).
+        smooth: fit the fixed-interval smoothed estimates (the offline output) instead of
+            the filtered ones; the validation loss is smoothed too.
+        learn: the sensor effects to learn with the rest (``EFFECTS``: ``"offset"``,
+            ``"gyro_scale"``, ``"play"``, ``"curve"``; docs/fitting.md); none by default.
     """
 
     steps: int = 200
@@ -327,8 +351,17 @@ class FitConfig:
     method: str = "kckf"
     loss: str = "rmse"
     nll_weight: float = NLL_WEIGHT
+    smooth: bool = False
+    learn: tuple[str, ...] = ()
 
     def __post_init__(self):
+        unknown = sorted(set(self.learn) - set(EFFECTS))
+        if unknown:
+            raise ValueError(f"FitConfig.learn: unknown effect {unknown[0]!r}; expected some "
+                             f"of {', '.join(EFFECTS)}")
+        if self.smooth and self.method not in KALMAN_METHODS:
+            raise ValueError(f"FitConfig.smooth: smoothing needs a Kalman method, got "
+                             f"{self.method!r}")
         unknown = sorted(set(self.freeze) - set(_LEAVES))
         if unknown:
             raise ValueError(f"FitConfig.freeze: unknown leaf {unknown[0]!r}; expected names "
@@ -359,7 +392,8 @@ def initial_params(sessions: Sequence[Session], config: FitConfig, dtype=None) -
     s = sessions[0]
     p = Params.paper_defaults(s.robot, s.hall_models, dtype=dtype)
     p = replace(p, hall_noise=config.hall_noise)
-    return with_floors(p)
+    p = with_floors(p)
+    return p.with_effects(config.learn) if config.learn else p
 
 
 # ----------------------------------------------------------------------------- training
@@ -445,16 +479,19 @@ def fit(
     if params.robot != sessions[0].robot:
         raise ValueError(f"initial parameters are for joints {params.robot.spec!r}, the "
                          f"sessions have {sessions[0].robot.spec!r}")
+    if config.learn and (params.effects is None or set(params.effects.on) != set(config.learn)):
+        params = params.with_effects(config.learn)  # a starting file's values are kept
     # The readings are judged once, with the starting parameters (``_run.screened``: every
     # reading alone and each sensor over time), not in every step's loss: faulty readings do
     # not enter the fit, and the health monitor's scan is not paid per step.
     batch = _screen_batch(params, batch, config.method)
     val = None if val is None else _screen_batch(params, val, config.method)
-    loss = make_loss(config.loss, params, batch, config.method, chunk, config.nll_weight)
+    loss = make_loss(config.loss, params, batch, config.method, chunk, config.nll_weight,
+                     smooth=config.smooth)
     # The validation loss is not differentiated: no remat needed, and the filter's own path.
     val_loss = (None if val is None else
                 make_loss(config.loss, params, val, config.method, None, config.nll_weight,
-                          gradient=False))
+                          gradient=False, smooth=config.smooth))
     # Parameters live replicated on every device (committed, so that the first and later
     # steps see identically placed inputs and compile once).
     replicated = jax.sharding.NamedSharding(trial_mesh(), jax.sharding.PartitionSpec())

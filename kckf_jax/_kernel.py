@@ -52,6 +52,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from . import _exact
 from ._custom_types import BlockCov, BlockHall, BlockRates, BlockState, BlockValid
+from ._effects import corrected_readings
 from ._hall import hall_angle, hall_slope
 from ._health import screened_series
 from ._kalman import coordinate_update, symmetrise
@@ -87,6 +88,9 @@ class SensorSeries(eqx.Module):
     #: Whether the readings are already as the filter uses them (``plausible``'s result):
     #: then ``plausible`` leaves them as they are, so each path screens its input once.
     screened: bool = eqx.field(static=True, default=False)
+    #: Whether the learned sensor effects (``Params.effects``) are already taken out of the
+    #: readings (``_effects.corrected_readings``): ``plausible`` does it once per series.
+    corrected: bool = eqx.field(static=True, default=False)
 
 
 class FilterState(eqx.Module):
@@ -479,15 +483,27 @@ def plausible(params: Params, series: SensorSeries, method: str = "kckf") -> Sen
     from a gyro that measures the same rate (``Robot.gyro_stand_ins``; none for ``method``
     ``"kckf3d"``: ``exact_kinematics``). Each path calls it once on its whole input (then
     ``SensorSeries.screened``), the step on its row (where it changes nothing more)."""
-    if series.screened:
+    if not series.screened:
+        gyro, hall_v = jnp.asarray(series.gyro), jnp.asarray(series.hall_v)
+        if jnp.ndim(series.dt) == 0:
+            used = screen(params, gyro, hall_v)
+            series = SensorSeries(series.dt, used.gyro, used.hall_v)
+        else:
+            gyro, hall_v, _ = screened_series(params, series.dt, gyro, hall_v,
+                                              exact_kinematics(method))
+            series = SensorSeries(series.dt, gyro, hall_v, screened=True)
+    return corrected(params, series)
+
+
+def corrected(params: Params, series: SensorSeries) -> SensorSeries:
+    """``series`` with the learned sensor effects of ``params`` taken out of its readings
+    (``_effects``; once: ``SensorSeries.corrected``); as it is when no effect is on."""
+    effects = params.effects
+    if effects is None or not effects.on or series.corrected:
         return series
-    gyro, hall_v = jnp.asarray(series.gyro), jnp.asarray(series.hall_v)
-    if jnp.ndim(series.dt) == 0:
-        used = screen(params, gyro, hall_v)
-        return SensorSeries(series.dt, used.gyro, used.hall_v)
-    gyro, hall_v, _ = screened_series(params, series.dt, gyro, hall_v,
-                                      exact_kinematics(method))
-    return SensorSeries(series.dt, gyro, hall_v, screened=True)
+    gyro, hall_v = corrected_readings(effects, params.robot, params.hall_coeffs,
+                                      jnp.asarray(series.gyro), jnp.asarray(series.hall_v))
+    return SensorSeries(series.dt, gyro, hall_v, screened=series.screened, corrected=True)
 
 
 def scan_filter(

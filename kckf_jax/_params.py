@@ -8,6 +8,7 @@ starts it from a positive floor (see ``Params.with_floors``).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Mapping
 
@@ -16,6 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from ._effects import EFFECTS, SensorEffects
 from ._hall import DEG, PAPER_HALL_DEG
 from ._limits import SensorLimits
 from ._robot import Robot
@@ -60,6 +62,10 @@ class Params(eqx.Module):
     Static: the ``robot``, each sensor's ``hall_sign``, the ``hall_noise`` model and the
     readings' physical ``limits`` (``SensorLimits``: beyond them a reading is missing).
 
+    ``effects``: the learned sensor effects (``SensorEffects``: gyro scale factors, the
+    joints' play, Hall curves beyond Eq. 1, a clock offset against motion capture), or
+    ``None`` (the paper's sensor models; the default). ``with_effects`` switches them on.
+
     Example:
         >>> p = Params.paper_defaults(Robot.from_spec("x,y,x,y"))
         >>> round(float(p.sigma_hall[0]) / DEG, 3)
@@ -81,6 +87,7 @@ class Params(eqx.Module):
     hall_sign: tuple[int, ...] = eqx.field(static=True)
     hall_noise: str = eqx.field(static=True, default="angle")
     limits: SensorLimits = eqx.field(static=True, default=SensorLimits())
+    effects: SensorEffects | None = None
 
     def __check_init__(self):
         K, M = self.robot.n_angles, self.robot.n_hall
@@ -179,14 +186,45 @@ class Params(eqx.Module):
 
     def astype(self, dtype) -> Params:
         """The same parameters with every leaf cast to ``dtype``."""
-        return eqx.tree_at(
+        out = eqx.tree_at(
             lambda p: [getattr(p, f) for f in _LEAVES], self,
             [jnp.asarray(getattr(self, f), dtype=dtype) for f in _LEAVES],
         )
+        if self.effects is None:
+            return out
+        return dataclasses.replace(out, effects=self.effects.astype(dtype))
+
+    def with_effects(self, on=EFFECTS, effects: SensorEffects | None = None) -> Params:
+        """These parameters with the sensor effects ``on`` (names of ``EFFECTS``) switched on:
+        from ``effects`` where given, else from the ones already here, else from none
+        (zero); an empty ``on`` switches every effect off (``effects=None``)."""
+        on = tuple(on)
+        if not on:
+            return dataclasses.replace(self, effects=None)
+        base = effects or self.effects or SensorEffects.zeros(self.robot,
+                                                              dtype=self.log_q.dtype)
+        return dataclasses.replace(self, effects=SensorEffects(
+            base.offset, base.gyro_scale, base.play, base.curve,
+            on=tuple(e for e in EFFECTS if e in on)))
 
 
 _LEAVES = ("log_q", "log_angle_rw", "log_bias_rw", "log_sigma_hall", "log_sigma_hall_v",
            "log_p0_angle", "log_p0_bias", "log_hall_a", "log_hall_b", "log_hall_c", "log_hall_d")
+
+
+def leaf_names(params: Params) -> tuple[str, ...]:
+    """Every learned leaf of ``params`` by name: ``_LEAVES``, then ``effects.NAME`` for the
+    sensor effects' leaves where ``params`` has them (``get_leaf`` reads one)."""
+    if params.effects is None:
+        return _LEAVES
+    return _LEAVES + tuple(f"effects.{n}" for n in ("offset", "gyro_scale", "play", "curve"))
+
+
+def get_leaf(params: Params, name: str):
+    """The leaf ``name`` of ``leaf_names``."""
+    for part in name.split("."):
+        params = getattr(params, part)
+    return params
 
 
 def hall_arrays(robot: Robot, hall_models: Mapping[str, Mapping] | None = None):
@@ -279,6 +317,10 @@ def params_to_dict(params: Params, fit_info: Mapping | None = None) -> dict:
             for m, name in enumerate(robot.hall_names)
         },
     }
+    if params.effects is not None:
+        from ._effects import physical
+
+        doc["effects"] = physical(params.effects, robot)
     if fit_info:
         doc["fit"] = dict(fit_info)
     return doc
@@ -344,10 +386,19 @@ def params_from_dict(doc: object, where: str = "parameters", dtype=None) -> Para
                 f"{where}: {key}.{extra[0]}: not a name of the robot in this file "
                 f"(joints {robot.spec}); expected {', '.join(names)}")
     try:
-        return Params.from_physical(robot, hall_models=models, hall_noise=noise, dtype=dtype,
-                                    limits=limits, **{k: np.asarray(v) for k, v in vals.items()})
+        params = Params.from_physical(robot, hall_models=models, hall_noise=noise, dtype=dtype,
+                                      limits=limits, **{k: np.asarray(v) for k, v in vals.items()})
     except ValueError as exc:
         raise ParamsFileError(f"{where}: {exc}") from None
+    if "effects" not in doc:
+        return params
+    from ._effects import from_physical
+
+    try:
+        effects = from_physical(obj(doc["effects"], "effects"), robot, where, dtype)
+    except ValueError as exc:
+        raise ParamsFileError(str(exc)) from None
+    return params.with_effects(effects.on, effects)
 
 
 def save_params(params: Params, path: str, fit_info: Mapping | None = None) -> None:

@@ -61,6 +61,11 @@ def build_parser(commands: Mapping[str, Callable], demo_steps: int) -> argparse.
     s.add_argument("--fault", action="append", default=[], metavar="SPEC",
                    help="write a sensor fault (repeatable): KIND:COLUMN[@FROM-TO][=SIZE] "
                         "or gap@FROM-TO (docs/simulator.md, 'Faults on request')")
+    s.add_argument("--effect", action="append", default=[], metavar="NAME=SIZE",
+                   help="a sensor effect (repeatable): play=DEG (the joints' play as the Hall "
+                        "sensors see it), curve=DEG (each Hall curve's RMS departure from "
+                        "Eq. 1), sync=SEC (a motion-capture clock error meta.json does not "
+                        "know); docs/simulator.md, 'Sensor effects'")
     s.set_defaults(func=commands['cmd_simulate'])
 
     f = sub.add_parser("filter", parents=[common], help="run one filter over a session")
@@ -106,6 +111,13 @@ def build_parser(commands: Mapping[str, Callable], demo_steps: int) -> argparse.
                         "readings (needs no mocap.csv), or both")
     t.add_argument("--nll-weight", type=float,
                    help="rmse+nll: deg of RMSE per nat of likelihood (FitConfig.nll_weight)")
+    t.add_argument("--smooth", action="store_true",
+                   help="fit the fixed-interval (RTS) smoothed estimates, the offline output "
+                        "(Kalman methods; the validation loss smoothed too)")
+    t.add_argument("--learn", metavar="EFFECTS",
+                   help="sensor effects to learn too, comma-separated: offset (a clock offset "
+                        "against motion capture), gyro_scale, play (the joints' mechanical "
+                        "play), curve (Hall curves beyond Eq. 1); docs/fitting.md")
     t.add_argument("--batch-size", type=int, help="trials per step (default all)")
     t.add_argument("--init", help="start from this parameter file instead of the paper's")
     t.add_argument("--checkpoint", help="checkpoint file (default OUTPUT.ckpt)")

@@ -25,6 +25,11 @@ Motions (``kind``):
   circling (the torso angles reaching 34-50 deg about the circling axes, one circle in 4-6 s)
   and twisting against the pelvis (assumptions of this project: gait pelvis ranges of that
   size are textbook values; the circling is a motion chosen to exercise 3D joints).
+
+Sensor effects beyond the paper's sensor models, each off by default (``SimConfig``): the
+joints' mechanical play as the Hall sensors see it, Hall curves beyond Eq. 1's shape, and a
+motion-capture clock error that ``meta.json`` does not know; their true values, and the gyros'
+scale errors, are kept in ``meta.json``'s ``simulation.effects``.
 """
 
 from __future__ import annotations
@@ -44,6 +49,12 @@ from ._sim_faults import Fault, inject_faults
 KINDS = ("cyclic", "static", "human", "walking")
 KINEMATICS = ("linear", "exact")
 DPS = DEG  # one degree per second, in rad/s
+#: ``kckf simulate --effect NAME=SIZE``: each name's ``SimConfig`` field (play and curve in deg,
+#: sync in s).
+EFFECTS = {"play": "hall_play_deg", "curve": "hall_curve_deg", "sync": "mocap_sync_error_s"}
+_CURVE_RANGE_DEG = 30.0  # u = theta / 30 deg: the span of the paper's Eq. 1 fit, Fig. 3
+# Salts the device seed for the effects' own generator (another stream than ``dev``'s 7919).
+_EFFECTS_SALT = 6151
 
 
 @dataclass(frozen=True)
@@ -59,7 +70,7 @@ class SimConfig:
     warmup_delta_c: float = 8.0  # assumption: board warms by ~8 degC against the body
     warmup_tau_s: float = 600.0  # assumption: thermal time constant of the worn board
     gyro_bias_walk_dps_rts: float = 2e-4  # assumption: bias random walk (in-run instability)
-    gyro_scale_error: float = 0.01  # assumption: 1 % sensitivity error per axis
+    gyro_scale_error: float = 0.01  # 1 % per axis: rate-grade MEMS scale factor 0.1-1 %
     gyro_lsb_dps: float = 8.75e-3  # 8.75 mdps/LSB at +-250 dps
     # DRV5053 Hall sensor read by a 12-bit ADC, 3.3 V reference.
     hall_v_noise: float = 0.03  # V RMS: electrical + EMI + ADC (assumption, see docs)
@@ -74,6 +85,11 @@ class SimConfig:
     mocap_margin_s: float = 0.5  # mocap starts later and stops earlier than the sensors
     mocap_offset_range_s: float = 2.0  # |mocap_time_offset_s| drawn below this
     drop_prob: float = 0.0  # probability that any one reading is missing (NaN)
+    # Sensor effects, each off (0) by default (docs/simulator.md, "Sensor effects"); their true
+    # per-device values are drawn from a generator of their own, so that no other draw moves.
+    hall_play_deg: float = 0.0  # backlash half-width the Hall sensors see, deg (x U(0.75, 1.25))
+    hall_curve_deg: float = 0.0  # RMS over +-30 deg of each Hall curve's P2/P3 deviation, deg
+    mocap_sync_error_s: float = 0.0  # error of the recorded mocap_time_offset_s, s (signed)
 
 
 class _Smooth:
@@ -90,6 +106,63 @@ class _Smooth:
         val = np.sum(self.a[:, None] * np.sin(arg), axis=0)
         der = np.sum((self.a * 2 * np.pi * self.f)[:, None] * np.cos(arg), axis=0)
         return val, der
+
+
+def parse_effects(specs: Sequence[str]) -> dict[str, float]:
+    """``kckf simulate --effect NAME=SIZE`` texts as ``SimConfig`` fields and values.
+
+    Names: ``play`` (deg, ``hall_play_deg``), ``curve`` (deg, ``hall_curve_deg``), ``sync`` (s,
+    ``mocap_sync_error_s``, signed). A bad text raises ``ValueError`` naming it.
+
+    Example:
+        >>> parse_effects(["play=1", "sync=-0.02"])
+        {'hall_play_deg': 1.0, 'mocap_sync_error_s': -0.02}
+    """
+    out: dict[str, float] = {}
+    for text in specs:
+        name, eq, size = (x.strip() for x in text.partition("="))
+        if name not in EFFECTS:
+            raise ValueError(f"--effect {text!r}: unknown name {name!r}; expected one of "
+                             f"{', '.join(EFFECTS)}")
+        if not eq or not size:
+            raise ValueError(f"--effect {text!r}: expected NAME=SIZE, e.g. {name}=1")
+        try:
+            value = float(size)
+        except ValueError:
+            raise ValueError(f"--effect {text!r}: size {size!r} is not a number") from None
+        if not np.isfinite(value) or (name != "sync" and value < 0):
+            raise ValueError(f"--effect {text!r}: the size must be a finite number"
+                             + ("" if name == "sync" else " >= 0"))
+        if EFFECTS[name] in out:
+            raise ValueError(f"--effect {text!r}: {name} is given twice")
+        out[EFFECTS[name]] = value
+    return out
+
+
+def _check_effects(cfg: SimConfig) -> None:
+    for field in EFFECTS.values():
+        value = getattr(cfg, field)
+        signed = field == "mocap_sync_error_s"
+        if not (np.isfinite(value) and (signed or value >= 0)):
+            raise ValueError(f"simulate: config.{field} must be a finite number"
+                             f"{'' if signed else ' >= 0'}, got {value}")
+
+
+def _play(angle: np.ndarray, half_width: np.ndarray) -> np.ndarray:
+    """The play (backlash) operator: ``p_k = clip(p_{k-1}, a_k - h, a_k + h)``, ``p_0 = a_0``,
+    per column of ``angle`` (T, M) with half-widths ``half_width`` (M,), same unit."""
+    out = np.empty_like(angle)
+    p = out[0] = angle[0]
+    lo, hi = angle - half_width, angle + half_width
+    for k in range(1, angle.shape[0]):  # path-dependent: each step needs the one before
+        p = out[k] = np.minimum(np.maximum(p, lo[k]), hi[k])
+    return out
+
+
+def _curve_deviation_deg(angle_deg: np.ndarray, p2: np.ndarray, p3: np.ndarray) -> np.ndarray:
+    """``p2 * P2(u) + p3 * P3(u)`` with ``u = angle / 30 deg`` (Legendre polynomials), deg."""
+    u = angle_deg / _CURVE_RANGE_DEG
+    return p2 * 0.5 * (3 * u**2 - 1) + p3 * 0.5 * (5 * u**3 - 3 * u)
 
 
 def _smoothstep(t: np.ndarray, t0: float, width: float) -> tuple[np.ndarray, np.ndarray]:
@@ -249,8 +322,9 @@ def simulate(
         config: hardware constants (default ``SimConfig()``).
         drop_prob: overrides ``config.drop_prob`` (probability that a reading is NaN).
         device_seed: seeds what belongs to the physical robot rather than to one recording:
-            each Hall sensor's true curve and each gyro axis's scale error. Sessions with the
-            same ``device_seed`` are trials of the same exoshell (default: ``seed``).
+            each Hall sensor's true curve, each gyro axis's scale error and the sensor effects'
+            per-sensor values. Sessions with the same ``device_seed`` are trials of the same
+            exoshell (default: ``seed``).
         true_hall_models: the sensors' true Eq. 1 curves (``meta.json`` form, any unit) instead
             of random ones; for experiments with known ground-truth parameters.
         faults: sensor faults written into the finished session (``inject_faults``, seeded
@@ -260,7 +334,10 @@ def simulate(
 
     Returns:
         A ``Session`` with sensors, motion capture (own rate, own clock) and meta. The true
-        Hall coefficients and gyro biases are kept in ``session.extra_meta["simulation"]``.
+        Hall coefficients and gyro biases are kept in ``session.extra_meta["simulation"]``,
+        and the sensor effects' true values (``SimConfig.hall_play_deg``, ``hall_curve_deg``,
+        ``mocap_sync_error_s``; each left out while off) and every gyro column's scale error
+        ``s`` (reading = (1 + s) * rate) in its ``"effects"`` (docs/simulator.md).
 
     Example:
         >>> s = simulate("x,y,x,y", "cyclic", seed=1, duration_s=10.0)
@@ -279,9 +356,22 @@ def simulate(
     cfg = config or SimConfig()
     if drop_prob is not None:
         cfg = SimConfig(**{**asdict(cfg), "drop_prob": float(drop_prob)})
+    _check_effects(cfg)
     rng = np.random.default_rng(np.random.SeedSequence([seed, KINDS.index(kind), len(robot.spec)]))
     device_seed = seed if device_seed is None else device_seed
     dev = np.random.default_rng(np.random.SeedSequence([device_seed, 7919, len(robot.spec)]))
+    # The sensor effects' device values: a stream of their own, drawn whether or not an effect
+    # is on, so that turning one on moves no other draw (and the other effect's values stay).
+    fx = np.random.default_rng(np.random.SeedSequence([device_seed, _EFFECTS_SALT,
+                                                       len(robot.spec)]))
+    # (J,) half-widths: the play is the joint's, and both its sensors see it.
+    play_deg = cfg.hall_play_deg * fx.uniform(0.75, 1.25, robot.n_joint_axes)
+    direction = fx.uniform(0.0, 2 * np.pi, robot.n_hall)  # (P2, P3) on the unit circle
+    # RMS over u in [-1, 1] of cos P2(u) + sin P3(u): P2 and P3 are orthogonal, with mean
+    # squares 1/5 and 1/7.
+    rms = np.sqrt(np.cos(direction) ** 2 / 5 + np.sin(direction) ** 2 / 7)
+    curve_p2 = cfg.hall_curve_deg * np.cos(direction) / rms  # deg, coefficient of P2(u)
+    curve_p3 = cfg.hall_curve_deg * np.sin(direction) / rms  # deg, coefficient of P3(u)
 
     # ---- time: the microcontroller samples at its nominal rate with a little jitter.
     ts = 1.0 / cfg.sample_rate_hz
@@ -361,6 +451,13 @@ def simulate(
         f = np.clip(flex if flex is not None else np.zeros(n), 0, 1)
         shift = (dev.uniform(-2, 2, (2, M)) + rng.uniform(-0.5, 0.5, (2, M))) * DEG
         meas_angle = meas_angle + np.outer((1 - f) ** 4, shift[0]) + np.outer(f**4, shift[1])
+    if cfg.hall_play_deg > 0:
+        # The joint's play as each sensor sees it: its magnet lags the joint through a
+        # backlash of half-width h (deg), reading theta - h sign(rate) in a steady motion.
+        meas_angle = _play(meas_angle, play_deg[robot.hall_joint_axis] * DEG)
+    if cfg.hall_curve_deg > 0:
+        # Each true curve departs from Eq. 1's shape: the sensor sees theta + delta(theta).
+        meas_angle = meas_angle + DEG * _curve_deviation_deg(meas_angle / DEG, curve_p2, curve_p3)
     v = hall_voltage(meas_angle / DEG, true_coef[:, 0], true_coef[:, 1], true_coef[:, 2],
                      true_coef[:, 3], sign)
     wander = np.stack([_Smooth(rng, 0.01, 0.2)(t)[0] for _ in range(M)], axis=1)
@@ -377,6 +474,9 @@ def simulate(
 
     # ---- motion capture: own rate, own clock (offset), noise, a shorter span.
     offset = rng.uniform(-cfg.mocap_offset_range_s, cfg.mocap_offset_range_s)
+    # meta.json's offset may be wrong by the sync error: a frame showing the robot at sensor
+    # time t is then aligned to t + mocap_sync_error_s (the motion capture seems to lag).
+    recorded_offset = offset + cfg.mocap_sync_error_s if cfg.mocap_sync_error_s else offset
     margin = min(cfg.mocap_margin_s, 0.25 * (t[-1] - t[0]))  # short sessions keep some truth
     t_lo, t_hi = t[0] + margin, t[-1] - margin
     t_frames = np.arange(t_lo, t_hi, 1.0 / cfg.mocap_rate_hz)  # sensor time
@@ -394,9 +494,23 @@ def simulate(
                "d": PAPER_HALL_DEG["d"], "sign": int(s), "unit": "deg"}
         for name, s in zip(robot.hall_names, robot.hall_side_sign)
     }
+    # An effect that is off is left out of the record, so that a session without effects has
+    # the meta.json it had before they existed (apart from "effects": the gyro scales).
+    config = {k: v for k, v in asdict(cfg).items() if v or k not in EFFECTS.values()}
+    effects: dict = {}
+    if cfg.hall_play_deg > 0:
+        effects["hall_play_deg"] = {n: float(h) for n, h in
+                                    zip(robot.angle_names[:robot.n_joint_axes], play_deg)}
+    if cfg.hall_curve_deg > 0:
+        effects["hall_curve_deg"] = {n: {"p2": float(a), "p3": float(b)}
+                                     for n, a, b in zip(robot.hall_names, curve_p2, curve_p3)}
+    if cfg.mocap_sync_error_s:
+        effects["mocap_sync_error_s"] = float(cfg.mocap_sync_error_s)
+    # reading = (1 + s) * rate: the factor minus 1 (exact: the factor lies in [0.5, 2]).
+    effects["gyro_scale"] = {n: float(x) for n, x in zip(robot.gyro_names, (scale - 1).ravel())}
     simulation = {
         "kind": kind, "seed": seed, "device_seed": device_seed, "duration_s": duration_s,
-        "config": asdict(cfg),
+        "config": config,
         "true_hall_models": {
             name: {"a": float(c[0]), "b": float(c[1]), "c": float(c[2]), "d": float(c[3]),
                    "sign": int(s), "unit": "deg"}
@@ -406,10 +520,11 @@ def simulate(
     }
     if kinematics != "linear":
         simulation["kinematics"] = kinematics
+    simulation["effects"] = effects
     session = Session(
         robot=robot, t=t, gyro=gyro.reshape(n, -1), hall_v=v,
         sample_rate_hz=cfg.sample_rate_hz,
-        mocap_t=t_frames - offset, mocap=truth, mocap_time_offset_s=offset,
+        mocap_t=t_frames - offset, mocap=truth, mocap_time_offset_s=recorded_offset,
         hall_models=hall_models,
         description=(f"simulated {kind} session, seed {seed}, joints {robot.spec}"
                      + (f", {kinematics} kinematics" if kinematics != "linear" else "")

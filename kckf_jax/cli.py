@@ -63,18 +63,20 @@ def cmd_simulate(args) -> int:
     from ._robot import Robot
     from ._session import write_session
     from ._sim_faults import Fault
-    from ._simulate import simulate
+    from ._simulate import SimConfig, parse_effects, simulate
 
     robot = Robot.from_spec(args.joints)
     faults = [Fault.parse(spec) for spec in args.fault]  # a bad spec: one line, exit 2
+    effects = parse_effects(args.effect)  # likewise
     session = simulate(robot, args.kind, seed=args.seed, duration_s=args.duration,
                        drop_prob=args.drop_prob, move_s=args.move,
                        device_seed=args.device_seed, faults=faults,
-                       kinematics=args.kinematics)
+                       kinematics=args.kinematics, config=SimConfig(**effects))
     write_session(session, args.out)
     _say(args, f"wrote {args.out}: {session.n_steps} sensor rows, {len(session.mocap_t)} mocap "
                f"frames, joints {robot.spec}"
-               + (f", faults: {' '.join(map(str, faults))}" if faults else ""))
+               + (f", faults: {' '.join(map(str, faults))}" if faults else "")
+               + (f", effects: {' '.join(args.effect)}" if args.effect else ""))
     return 0
 
 
@@ -187,6 +189,7 @@ def _distributed(args) -> None:
 
 
 def cmd_fit(args) -> int:
+    from ._effects import parse_learn
     from ._fit import FitConfig, FitInterrupted, fit, fit_info
     from ._params import save_params
     from ._report import data_faults
@@ -203,6 +206,7 @@ def cmd_fit(args) -> int:
                        method=method,
                        freeze=tuple(args.freeze or ()), burn_in_s=args.burn_in,
                        batch_size=args.batch_size, seed=args.seed, loss=args.loss,
+                       smooth=args.smooth, learn=parse_learn(args.learn),
                        **({} if args.nll_weight is None else {"nll_weight": args.nll_weight}))
     init = None
     if args.init:
@@ -239,7 +243,8 @@ def cmd_fit(args) -> int:
     summary = {"params": args.output, "best_step": result.best_step, "loss": args.loss,
                best: result.best_loss_deg, "selected_on": "val" if val else "train",
                "steps_done": result.steps_done, "stopped_early": result.stopped_early,
-               "seconds": round(result.seconds, 2)}
+               "seconds": round(result.seconds, 2), "smoothed": config.smooth,
+               "learned": list(config.learn)}
     print(json.dumps(summary))
     return 0
 

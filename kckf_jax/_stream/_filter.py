@@ -183,7 +183,10 @@ class StreamingFilter:
         self._initial = jax.device_put(self._flatten((init_state(params, method),
                                                       self._fresh_health)))
         self._fault_names = self.robot.gyro_names + self.robot.hall_names
-        self._host_ok = host_path and steady.model_reason(params, method) is None
+        # The host map folds Eq. 1 into one product: learned corrections of the readings
+        # (``Params.effects``) are the jitted step's.
+        self._host_ok = (host_path and steady.model_reason(params, method) is None
+                         and (params.effects is None or not params.effects.on))
         self._used = self.robot.used_gyro_index
         self._tol = steady.tol(self.dtype)
         # As in the batch steady path: at least its head of regular rows before switching.

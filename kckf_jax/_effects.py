@@ -1,0 +1,251 @@
+"""Learned sensor effects: what the readings carry beyond the paper's sensor models.
+
+Each effect is off unless named (``SensorEffects.on``), has a physical meaning and a unit, and
+is learned by the one training loop with the rest of ``Params`` (``kckf fit --learn``). The
+definitions are the simulator's (``SimConfig``, docs/simulator.md "Sensor effects"), so a fit
+on a simulated session can be checked against the truth (``training/recovery.py``):
+
+* ``gyro_scale``: each gyro channel reads ``(1 + s) * rate`` (plus its bias and noise); the
+  correction divides by ``1 + s``. Unit: %.
+* ``play``: the magnets the Hall sensors of a joint axis read lag the joint through the
+  origami's mechanical play: moving steadily, both sensors see ``theta - h * sign(rate)``,
+  ``h`` the play's half-width (deg, one per joint axis: the play is the joint's; the rate is
+  the joint's, from the gyros of the same row). The correction
+  adds ``h * tanh(rate / PLAY_RATE_RAD_S)``: a sign that stays differentiable, and that is
+  0 when the joint is still (where the true play operator remembers the last direction:
+  the model's approximation).
+* ``curve``: each Hall sensor's true curve differs from Eq. 1's shape by a smooth deviation
+  in angle, ``delta(theta) = c2 P2(u) + c3 P3(u)``, ``u = theta / 30 deg`` (Legendre
+  polynomials; deg). The correction subtracts ``delta`` at the angle Eq. 1 reads.
+* ``offset``: the motion capture lags the sensors by ``tau`` seconds beyond what
+  ``meta.json``'s ``mocap_time_offset_s`` says (a frame showing the robot at sensor time
+  ``t`` lands at ``t + tau``). Not a property of the readings: it moves where the estimates
+  are compared with motion capture (the fitting loss, ``kckf evaluate``) and nothing the
+  filter computes; a live stream has no motion capture, so the stream and the export carry
+  it in the parameters but do not use it.
+
+The Hall corrections are made on the voltage: the reading ``V`` becomes ``V'`` with
+``theta(V') = theta(V) + correction`` (Newton's method on Eq. 1 from ``V``; the curve is
+monotone, and four steps reach the root to rounding for corrections of degrees), so every
+path, the smoother, the likelihood, the stream and the exported step use the corrected
+readings through their own Eq. 1, and the voltage noise model takes the slope where the
+corrected reading sits. The corrections are made once per series, after the readings are
+judged (``_kernel.plausible``): a faulty reading is judged on what the sensor gave.
+
+Leaves are unconstrained and in units where a typical size is about 1 (the optimiser's steps
+are about its learning rate): play and curve in deg, gyro scale in %, the offset in units of
+10 ms; the physical values are properties.
+"""
+
+from __future__ import annotations
+
+import math
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from ._hall import hall_angle, hall_slope
+from ._robot import Robot
+
+DEG = math.pi / 180.0
+#: The effects that can be learned, in the order the docs give them.
+EFFECTS = ("offset", "gyro_scale", "play", "curve")
+#: Units of each effect's physical value (``SensorEffects.physical``).
+UNITS = {"offset": "s", "gyro_scale": "fraction", "play": "deg", "curve": "deg"}
+#: The joint rate at which the play's correction is 76 % of its size (tanh(1)): 5 deg/s, about
+#: 4 times the largest gyro bias of a pair (LSM6DSO zero-rate level +-1 dps each), so an
+#: unknown bias moves the correction of a still joint by at most a quarter of its size.
+PLAY_RATE_RAD_S = 5.0 * DEG
+#: The angle that maps to ``u = 1`` in the curve's Legendre polynomials (a joint's range).
+CURVE_SCALE_RAD = 30.0 * DEG
+_OFFSET_UNIT_S = 0.01
+_SCALE_UNIT = 0.01
+NEWTON_STEPS = 4
+
+
+class SensorEffects(eqx.Module):
+    """The learned sensor effects of one robot layout (``EFFECTS``; the module docstring).
+
+    Leaves (unconstrained; zero is "no effect"): ``offset`` (scalar, in 10 ms), ``gyro_scale``
+    (``G``, %), ``play`` (``J``: per joint axis, deg), ``curve`` (``M 2``: each Hall sensor's
+    P2 and P3 coefficients, deg).
+    Static: ``on``, the effects in use; an effect not in ``on`` changes nothing, whatever its
+    leaf holds.
+
+    Example:
+        >>> e = SensorEffects.zeros(Robot.from_spec("x"), on=("play",))
+        >>> e.play_rad.shape
+        (1,)
+    """
+
+    offset: Float[Array, ""]
+    gyro_scale: Float[Array, " G"]
+    play: Float[Array, " J"]
+    curve: Float[Array, "M 2"]
+    on: tuple[str, ...] = eqx.field(static=True, default=())
+
+    def __check_init__(self):
+        unknown = [e for e in self.on if e not in EFFECTS]
+        if unknown:
+            raise ValueError(f"SensorEffects.on: unknown effect {unknown[0]!r}; expected some "
+                             f"of {', '.join(EFFECTS)}")
+
+    @classmethod
+    def zeros(cls, robot: Robot, on=(), dtype=None) -> SensorEffects:
+        """No effect yet: every leaf 0, ``on`` the effects to learn."""
+        dt = dtype or jnp.asarray(0.0).dtype
+        G, J, M = 3 * robot.n_links, robot.n_joint_axes, robot.n_hall
+        return cls(jnp.zeros((), dt), jnp.zeros(G, dt), jnp.zeros(J, dt), jnp.zeros((M, 2), dt),
+                   on=tuple(e for e in EFFECTS if e in on))
+
+    # ------------------------------------------------------------------ physical values
+    time_offset_s = property(lambda self: self.offset * _OFFSET_UNIT_S)
+    gyro_scale_error = property(lambda self: self.gyro_scale * _SCALE_UNIT)
+    play_rad = property(lambda self: self.play * DEG)
+    curve_rad = property(lambda self: self.curve * DEG)
+
+    def uses(self, effect: str) -> bool:
+        return effect in self.on
+
+    def astype(self, dtype) -> SensorEffects:
+        return SensorEffects(*(jnp.asarray(x, dtype) for x in
+                               (self.offset, self.gyro_scale, self.play, self.curve)), on=self.on)
+
+
+# ---------------------------------------------------------------------------- the readings
+def curve_deviation(effects: SensorEffects, angle: Array) -> Array:
+    """Each Hall sensor's deviation from Eq. 1 (rad) at ``angle`` (rad, ``... M``)."""
+    u = angle / CURVE_SCALE_RAD
+    p2 = 0.5 * (3.0 * u**2 - 1.0)
+    p3 = 0.5 * (5.0 * u**3 - 3.0 * u)
+    c = effects.curve_rad
+    return c[..., 0] * p2 + c[..., 1] * p3
+
+
+def joint_rates(robot: Robot, gyro: Array) -> Array:
+    """Each joint axis's rate (rad/s, ``... J``) from one row's (or every row's) gyros: the
+    difference of the gyros across the joint (``Robot.rate_pairs``, Eq. 2); NaN where one is
+    missing."""
+    plus, minus = robot.rate_pairs
+    J = robot.n_joint_axes
+    return gyro[..., plus[:J]] - gyro[..., minus[:J]]
+
+
+def angle_rates(robot: Robot, gyro: Array) -> Array:
+    """Every angle's rate (rad/s, ``... K``: joint axes, then torso axes), as ``joint_rates``."""
+    plus, minus = robot.rate_pairs
+    return gyro[..., plus] - gyro[..., minus]
+
+
+def corrected_readings(effects: SensorEffects, robot: Robot, hall_coeffs, gyro: Array,
+                       hall_v: Array) -> tuple[Array, Array]:
+    """The readings with the effects in ``effects.on`` taken out: ``(gyro, hall_v)`` of any
+    leading shape (``... G``, ``... M``); a missing reading stays missing, and neither value
+    nor gradient is NaN because of one."""
+    g_valid = jnp.isfinite(gyro)
+    g = jnp.where(g_valid, gyro, 0.0)  # a missing reading makes no NaN gradient
+    if effects.uses("gyro_scale"):
+        g = g / (1.0 + effects.gyro_scale_error)
+        gyro = jnp.where(g_valid, g, gyro)
+    play, curve = effects.uses("play"), effects.uses("curve")
+    if not (play or curve):
+        return gyro, hall_v
+    valid = jnp.isfinite(hall_v)
+    v = jnp.where(valid, hall_v, 1.5)  # a missing reading: a finite stand-in, no NaN gradient
+    angle = hall_angle(v, *hall_coeffs)
+    target = angle
+    if play:
+        both = joint_rates(robot, jnp.where(g_valid, 0.0, jnp.nan))  # NaN: one is missing
+        rate = jnp.where(jnp.isfinite(both), joint_rates(robot, g), 0.0)
+        lag = effects.play_rad * jnp.tanh(rate / PLAY_RATE_RAD_S)  # ... J
+        target = target + lag[..., robot.hall_joint_axis]
+    if curve:
+        target = target - curve_deviation(effects, angle)
+    v_new = v
+    for _ in range(NEWTON_STEPS):
+        v_new = v_new - (hall_angle(v_new, *hall_coeffs) - target) / hall_slope(v_new,
+                                                                                  *hall_coeffs)
+    return gyro, jnp.where(valid, v_new, hall_v)
+
+
+def physical(effects: SensorEffects, robot: Robot) -> dict:
+    """The effects in use as ``{effect: value}`` in their ``UNITS``, keyed by column (the
+    parameter file's ``effects`` entry)."""
+    out = {}
+    if effects.uses("offset"):
+        out["offset"] = {"time_offset_s": float(effects.time_offset_s)}
+    if effects.uses("gyro_scale"):
+        s = np.asarray(effects.gyro_scale_error, np.float64)
+        out["gyro_scale"] = {n: float(s[i]) for i, n in enumerate(robot.gyro_names)}
+    if effects.uses("play"):
+        h = np.asarray(effects.play, np.float64)
+        out["play"] = {n: {"half_width_deg": float(h[j])}
+                       for j, n in enumerate(robot.angle_names[:robot.n_joint_axes])}
+    if effects.uses("curve"):
+        c = np.asarray(effects.curve, np.float64)
+        out["curve"] = {n: {"p2_deg": float(c[m, 0]), "p3_deg": float(c[m, 1])}
+                        for m, n in enumerate(robot.hall_names)}
+    return out
+
+
+def from_physical(doc: dict, robot: Robot, where: str, dtype=None) -> SensorEffects:
+    """Parse ``physical``'s form (``where`` names the file in errors, a ``ValueError``)."""
+    e = SensorEffects.zeros(robot, on=tuple(doc), dtype=dtype)
+
+    def num(x, field):
+        ok = isinstance(x, int | float) and not isinstance(x, bool) and math.isfinite(x)
+        if not ok:
+            raise ValueError(f"{where}: effects.{field}: expected a number, got {x!r}")
+        return float(x)
+
+    def obj(x, field):
+        if not isinstance(x, dict):
+            raise ValueError(f"{where}: effects.{field}: expected an object, got {x!r}")
+        return x
+
+    def per(name, names):
+        d = obj(doc[name], name)
+        extra = sorted(set(d) - set(names))
+        if extra:
+            raise ValueError(f"{where}: effects.{name}.{extra[0]}: not a name of joints "
+                             f"{robot.spec}")
+        return [d.get(n) for n in names]
+
+    unknown = sorted(set(doc) - set(EFFECTS))
+    if unknown:
+        raise ValueError(f"{where}: effects.{unknown[0]}: unknown effect; expected some of "
+                         f"{', '.join(EFFECTS)}")
+    vals = {"offset": e.offset, "gyro_scale": e.gyro_scale, "play": e.play, "curve": e.curve}
+    if "offset" in doc:
+        vals["offset"] = num(obj(doc["offset"], "offset").get("time_offset_s"),
+                             "offset.time_offset_s") / _OFFSET_UNIT_S
+    if "gyro_scale" in doc:
+        vals["gyro_scale"] = [num(x, f"gyro_scale.{n}") / _SCALE_UNIT
+                              for n, x in zip(robot.gyro_names, per("gyro_scale",
+                                                                    robot.gyro_names))]
+    if "play" in doc:
+        axes = robot.angle_names[:robot.n_joint_axes]
+        vals["play"] = [num(obj(x, f"play.{n}").get("half_width_deg"),
+                            f"play.{n}.half_width_deg")
+                        for n, x in zip(axes, per("play", axes))]
+    if "curve" in doc:
+        vals["curve"] = [[num(obj(x, f"curve.{n}").get(k), f"curve.{n}.{k}")
+                          for k in ("p2_deg", "p3_deg")]
+                         for n, x in zip(robot.hall_names, per("curve", robot.hall_names))]
+    dt = dtype or jnp.asarray(0.0).dtype
+    return SensorEffects(*(jnp.asarray(vals[k], dt) for k in
+                           ("offset", "gyro_scale", "play", "curve")), on=e.on)
+
+
+def parse_learn(text: str | None) -> tuple[str, ...]:
+    """``--learn offset,play``'s list; a ``ValueError`` names an unknown effect."""
+    if not text:
+        return ()
+    names = tuple(x.strip() for x in text.split(",") if x.strip())
+    unknown = [n for n in names if n not in EFFECTS]
+    if unknown:
+        raise ValueError(f"--learn: unknown effect {unknown[0]!r}; expected some of "
+                         f"{', '.join(EFFECTS)} (comma-separated)")
+    return tuple(e for e in EFFECTS if e in names)

@@ -1,0 +1,209 @@
+"""Learned sensor effects (``Params.effects``): the corrections against an independent NumPy
+reference, nothing changed when they are off, the same corrections in the batch filter, the
+stream and the exported step, the parameter file, and gradients that reach every leaf."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import kckf_jax as kk
+from kckf_jax._effects import EFFECTS, SensorEffects, corrected_readings
+from kckf_jax._fit import make_batch
+from kckf_jax.export_loader import ExportedStep
+
+DEG = math.pi / 180.0
+ROBOT = kk.Robot.from_spec("x,y")
+
+
+@pytest.fixture(scope="module")
+def session():
+    return kk.simulate(ROBOT, "cyclic", seed=3, duration_s=12.0)
+
+
+def some_effects(robot: kk.Robot, on=EFFECTS) -> SensorEffects:
+    """Effects of realistic sizes: 1 % scales, 0.8-1.2 deg of play, curves of 0.5 deg, 20 ms."""
+    rng = np.random.default_rng(0)
+    G, J, M = 3 * robot.n_links, robot.n_joint_axes, robot.n_hall
+    return SensorEffects(jnp.asarray(2.0), jnp.asarray(rng.uniform(-1, 1, G)),
+                         jnp.asarray(rng.uniform(0.8, 1.2, J)),
+                         jnp.asarray(rng.uniform(-0.5, 0.5, (M, 2))), on=tuple(on))
+
+
+def reference_correction(params: kk.Params, effects: SensorEffects, gyro, hall_v):
+    """The docs' definitions in NumPy float64, inverted with ``hall_voltage`` (its own Newton
+    iteration): gyro / (1 + s); theta(V') = theta(V) + h tanh(rate / 5 deg/s) - delta(theta)."""
+    a, b, c, d, sign = (np.asarray(x, np.float64) for x in params.hall_coeffs)
+    gyro = np.asarray(gyro, np.float64) / (1 + np.asarray(effects.gyro_scale, np.float64) / 100)
+    theta = sign * (a * np.exp(b * hall_v) - c * np.exp(-d * hall_v))
+    plus, minus = ROBOT.rate_pairs
+    J = ROBOT.n_joint_axes
+    rate = gyro[:, plus[:J]] - gyro[:, minus[:J]]
+    lag = np.asarray(effects.play, np.float64) * DEG * np.tanh(rate / (5 * DEG))
+    u = theta / (30 * DEG)
+    c2, c3 = (np.asarray(effects.curve, np.float64)[:, k] * DEG for k in (0, 1))
+    dev = c2 * 0.5 * (3 * u**2 - 1) + c3 * 0.5 * (5 * u**3 - 3 * u)
+    target = theta + lag[:, ROBOT.hall_joint_axis] - dev
+    return gyro, kk.hall_voltage(target, a, b, c, d, sign)
+
+
+def test_corrections_match_an_independent_reference(session):
+    params = kk.Params.paper_defaults(ROBOT, session.hall_models)
+    effects = some_effects(ROBOT)
+    rows = slice(200, 700)  # moving: the joint rates are large and of both signs
+    gyro, hall_v = session.gyro[rows], session.hall_v[rows]
+    got_g, got_v = corrected_readings(effects, ROBOT, params.hall_coeffs, jnp.asarray(gyro),
+                                      jnp.asarray(hall_v))
+    ref_g, ref_v = reference_correction(params, effects, gyro, hall_v)
+    np.testing.assert_allclose(np.asarray(got_g), ref_g, rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(np.asarray(got_v), ref_v, rtol=0, atol=1e-11)
+    moved = np.abs(np.asarray(got_v) - hall_v)
+    assert moved.max() > 1e-3  # the corrections did something
+
+
+def test_missing_readings_stay_missing_without_nan_gradients(session):
+    params = kk.Params.paper_defaults(ROBOT, session.hall_models)
+    effects = some_effects(ROBOT)
+    gyro, hall_v = session.gyro[:50].copy(), session.hall_v[:50].copy()
+    gyro[5, 3], hall_v[7, 1] = np.nan, np.nan
+    g, v = corrected_readings(effects, ROBOT, params.hall_coeffs, jnp.asarray(gyro),
+                              jnp.asarray(hall_v))
+    assert np.isnan(np.asarray(g)[5, 3]) and np.isnan(np.asarray(v)[7, 1])
+    assert np.isfinite(np.asarray(v)[~np.isnan(hall_v)]).all()
+
+    def total(e):
+        _, v = corrected_readings(e, ROBOT, params.hall_coeffs, jnp.asarray(gyro),
+                                  jnp.asarray(hall_v))
+        return jnp.nansum(v)
+
+    grads = jax.grad(total)(effects)
+    for leaf in (grads.gyro_scale, grads.play, grads.curve):
+        assert np.isfinite(np.asarray(leaf)).all()
+    assert np.abs(np.asarray(grads.play)).max() > 0 and np.abs(np.asarray(grads.curve)).max() > 0
+
+
+def test_effects_off_change_nothing(session):
+    """Zero-valued effects, all on, and no effects at all: the same estimates (float64)."""
+    params = kk.Params.paper_defaults(ROBOT, session.hall_models)
+    series = kk.session_series(session)
+    base = kk.run_filter(params, series)[1]
+    for p in (params.with_effects(EFFECTS), params.with_effects(())):
+        est = kk.run_filter(p, series)[1]
+        np.testing.assert_allclose(np.asarray(est.angles), np.asarray(base.angles), rtol=0,
+                                   atol=1e-12)
+    sm0 = kk.smooth(params, series)
+    sm1 = kk.smooth(params.with_effects(EFFECTS), series)
+    np.testing.assert_allclose(np.asarray(sm1.angles), np.asarray(sm0.angles), rtol=0,
+                               atol=1e-12)
+
+
+def test_every_path_corrects_alike(session):
+    """Regular data with effects on: the steady path and the sequential one agree, and both
+    differ from the filter without the effects."""
+    s = kk.simulate(ROBOT, "cyclic", seed=4, duration_s=50.0,
+                    config=kk.SimConfig(timestamp_jitter_s=0.0))  # steady: over 4096 rows
+    params = kk.Params.paper_defaults(ROBOT, s.hall_models).with_effects(
+        EFFECTS, some_effects(ROBOT))
+    series = kk.session_series(s)
+    seq = kk.run_filter(params, series, path="sequential")[1]
+    for path in ("steady", "segments", "parallel"):
+        other = kk.run_filter(params, series, path=path)[1]
+        assert other.path.startswith(path)
+        np.testing.assert_allclose(np.asarray(other.angles), np.asarray(seq.angles), atol=1e-7)
+    lanes = kk.filter_batch(params, jax.tree_util.tree_map(lambda x: jnp.stack([x] * 4),
+                                                           series), path="lanes")
+    np.testing.assert_allclose(np.asarray(lanes.angles[2]), np.asarray(seq.angles), atol=1e-7)
+    sm_seq = kk.smooth(params, series, path="sequential")
+    sm_steady = kk.smooth(params, series, path="steady")
+    np.testing.assert_allclose(np.asarray(sm_steady.angles), np.asarray(sm_seq.angles),
+                               atol=1e-7)
+    plain = kk.run_filter(params.with_effects(()), series, path="sequential")[1]
+    assert np.nanmax(np.abs(np.asarray(plain.angles) - np.asarray(seq.angles))) > 1e-3
+
+
+def test_stream_and_export_correct_as_the_batch_filter(session, tmp_path):
+    params = kk.Params.paper_defaults(ROBOT, session.hall_models).with_effects(
+        EFFECTS, some_effects(ROBOT))
+    rows = range(300)
+    batch = np.asarray(kk.run_filter(params, kk.session_series(session))[1].angles)[:300]
+    sf = kk.StreamingFilter(params, host_path=True)
+    streamed = []
+    for i in rows:
+        rec = sf.push(kk.Packet(float(session.t[i]), session.gyro[i], session.hall_v[i], "ok"))
+        streamed.append([rec[n] for n in ROBOT.angle_names])
+        assert not sf.on_host  # the host map does not carry the corrections
+    np.testing.assert_allclose(np.asarray(streamed, np.float64), batch, atol=1e-9)
+    for baked in (True, False):
+        path = str(tmp_path / f"step_{baked}.jaxexport")
+        kk.export_step(params, path, baked=baked)
+        step = ExportedStep(path)
+        got = [step.push_array(float(session.t[i]),
+                               np.r_[session.gyro[i], session.hall_v[i]]) for i in rows]
+        np.testing.assert_allclose(np.asarray(got, np.float64), batch, atol=1e-9)
+        if not baked:
+            names = [n for n, _ in step.header["param_leaves"]]
+            assert names[-4:] == ["effects.offset", "effects.gyro_scale", "effects.play",
+                                  "effects.curve"]
+
+
+def test_parameter_file_round_trip(tmp_path):
+    params = kk.Params.paper_defaults(ROBOT).with_effects(("play", "offset"),
+                                                          some_effects(ROBOT))
+    path = str(tmp_path / "p.json")
+    kk.save_params(params, path)
+    doc = json.loads(Path(path).read_text())
+    assert set(doc["effects"]) == {"offset", "play"}
+    assert doc["effects"]["offset"]["time_offset_s"] == pytest.approx(0.02)
+    back = kk.load_params(path)
+    assert back.effects.on == ("offset", "play")
+    np.testing.assert_allclose(np.asarray(back.effects.play), np.asarray(params.effects.play))
+    kk.save_params(kk.Params.paper_defaults(ROBOT), path)
+    assert "effects" not in json.loads(Path(path).read_text())  # no effects: the file as before
+    doc["effects"]["play"]["theta9_x"] = {"half_width_deg": 1.0}
+    Path(path).write_text(json.dumps(doc))
+    with pytest.raises(kk.ParamsFileError, match=r"effects\.play\.theta9_x"):
+        kk.load_params(path)
+
+
+def test_clock_offset_moves_the_comparison_not_the_filter(session):
+    """The loss compares ``angle - tau * rate`` with the truth: when the motion capture lags
+    by 30 ms more, the best tau moves by 30 ms; the filter's estimates do not move."""
+    params = kk.Params.paper_defaults(ROBOT, session.hall_models)
+    fields = ("robot", "t", "gyro", "hall_v", "sample_rate_hz", "mocap_t", "mocap",
+              "hall_models")
+    lagged = kk.Session(**{f: getattr(session, f) for f in fields},
+                        mocap_time_offset_s=session.mocap_time_offset_s + 0.03)
+    taus = np.arange(-0.02, 0.071, 0.005)
+
+    def best(s):
+        batch = make_batch([s])
+        losses = []
+        for tau in taus:
+            e = SensorEffects.zeros(ROBOT, on=("offset",))
+            e = SensorEffects(jnp.asarray(tau / 0.01), e.gyro_scale, e.play, e.curve, on=e.on)
+            losses.append(float(kk.loss_fn(params.with_effects(e.on, e), batch)))
+        return taus[int(np.argmin(losses))]
+
+    assert best(lagged) - best(session) == pytest.approx(0.03, abs=0.0051)
+    est0 = kk.run_filter(params, kk.session_series(session))[1].angles
+    est1 = kk.run_filter(params.with_effects(("offset",)), kk.session_series(session))[1].angles
+    np.testing.assert_array_equal(np.asarray(est0), np.asarray(est1))
+
+
+def test_fit_reaches_every_learned_leaf(session):
+    """One smoothed step of the fit moves every effect it learns, and none it does not."""
+    cfg = kk.FitConfig(steps=1, val_every=1, learn=("play", "curve", "offset"), smooth=True)
+    res = kk.fit([session], (), cfg)
+    e = res.params.effects
+    assert e.on == ("offset", "play", "curve")
+    for leaf in (e.offset, e.play, e.curve):
+        assert np.abs(np.asarray(leaf)).max() > 0
+    assert np.abs(np.asarray(e.gyro_scale)).max() == 0
+    with pytest.raises(ValueError, match="unknown effect 'backlash'"):
+        kk.FitConfig(learn=("backlash",))
