@@ -5,6 +5,15 @@ is learned by the one training loop with the rest of ``Params`` (``kckf fit --le
 definitions are the simulator's (``SimConfig``, docs/simulator.md "Sensor effects"), so a fit
 on a simulated session can be checked against the truth (``training/recovery.py``):
 
+* ``gyro_timing``: where in each step the gyros' rate is taken. The paper integrates the rate
+  of the previous row over the step (Euler: ``theta_k = theta_{k-1} + dt * omega_{k-1}``), so
+  its angle lags by half a step wherever the rate changes; a gyro whose reading is delayed
+  (its digital low-pass filter's group delay) lags more. The step integrates
+  ``(1 - lambda) omega_{k-1} + lambda omega_k`` instead: ``lambda = 0`` is the paper's rule,
+  ``1/2`` the step's midpoint (a gyro without delay), and a gyro delayed by ``d`` against
+  the Hall sensors wants ``lambda = 1/2 + d / dt``. Unit: a fraction of the step (the
+  parameter file also gives ``d`` at the recording's step). A reading that is missing holds
+  the last one, as the paper's hold does.
 * ``gyro_scale``: each gyro channel reads ``(1 + s) * rate`` (plus its bias and noise); the
   correction divides by ``1 + s``. Unit: %.
 * ``play``: the magnets the Hall sensors of a joint axis read lag the joint through the
@@ -42,6 +51,7 @@ from __future__ import annotations
 import math
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
@@ -51,9 +61,9 @@ from ._robot import Robot
 
 DEG = math.pi / 180.0
 #: The effects that can be learned, in the order the docs give them.
-EFFECTS = ("offset", "gyro_scale", "play", "curve")
-#: Units of each effect's physical value (``SensorEffects.physical``).
-UNITS = {"offset": "s", "gyro_scale": "fraction", "play": "deg", "curve": "deg"}
+EFFECTS = ("offset", "gyro_timing", "gyro_scale", "play", "curve")
+#: The leaves of ``SensorEffects``, in order (the exported step's parameter vector).
+LEAVES = ("offset", "timing", "gyro_scale", "play", "curve")
 #: The joint rate at which the play's correction is 76 % of its size (tanh(1)): 5 deg/s, about
 #: 4 times the largest gyro bias of a pair (LSM6DSO zero-rate level +-1 dps each), so an
 #: unknown bias moves the correction of a still joint by at most a quarter of its size.
@@ -68,7 +78,8 @@ NEWTON_STEPS = 4
 class SensorEffects(eqx.Module):
     """The learned sensor effects of one robot layout (``EFFECTS``; the module docstring).
 
-    Leaves (unconstrained; zero is "no effect"): ``offset`` (scalar, in 10 ms), ``gyro_scale``
+    Leaves (unconstrained; zero is "no effect"): ``offset`` (scalar, in 10 ms), ``timing``
+    (scalar, a fraction of the step: ``lambda`` of ``gyro_timing``), ``gyro_scale``
     (``G``, %), ``play`` (``J``: per joint axis, deg), ``curve`` (``M 2``: each Hall sensor's
     P2 and P3 coefficients, deg).
     Static: ``on``, the effects in use; an effect not in ``on`` changes nothing, whatever its
@@ -81,6 +92,7 @@ class SensorEffects(eqx.Module):
     """
 
     offset: Float[Array, ""]
+    timing: Float[Array, ""]
     gyro_scale: Float[Array, " G"]
     play: Float[Array, " J"]
     curve: Float[Array, "M 2"]
@@ -97,7 +109,8 @@ class SensorEffects(eqx.Module):
         """No effect yet: every leaf 0, ``on`` the effects to learn."""
         dt = dtype or jnp.asarray(0.0).dtype
         G, J, M = 3 * robot.n_links, robot.n_joint_axes, robot.n_hall
-        return cls(jnp.zeros((), dt), jnp.zeros(G, dt), jnp.zeros(J, dt), jnp.zeros((M, 2), dt),
+        return cls(jnp.zeros((), dt), jnp.zeros((), dt), jnp.zeros(G, dt), jnp.zeros(J, dt),
+                   jnp.zeros((M, 2), dt),
                    on=tuple(e for e in EFFECTS if e in on))
 
     # ------------------------------------------------------------------ physical values
@@ -110,8 +123,8 @@ class SensorEffects(eqx.Module):
         return effect in self.on
 
     def astype(self, dtype) -> SensorEffects:
-        return SensorEffects(*(jnp.asarray(x, dtype) for x in
-                               (self.offset, self.gyro_scale, self.play, self.curve)), on=self.on)
+        return SensorEffects(*(jnp.asarray(getattr(self, x), dtype) for x in LEAVES),
+                             on=self.on)
 
 
 # ---------------------------------------------------------------------------- the readings
@@ -149,6 +162,8 @@ def corrected_readings(effects: SensorEffects, robot: Robot, hall_coeffs, gyro: 
     if effects.uses("gyro_scale"):
         g = g / (1.0 + effects.gyro_scale_error)
         gyro = jnp.where(g_valid, g, gyro)
+    if effects.uses("gyro_timing") and jnp.ndim(gyro) >= 2:  # rows in time (a row: the step's)
+        gyro = timed_gyro(effects.timing, gyro)
     play, curve = effects.uses("play"), effects.uses("curve")
     if not (play or curve):
         return gyro, hall_v
@@ -170,12 +185,45 @@ def corrected_readings(effects: SensorEffects, robot: Robot, hall_coeffs, gyro: 
     return gyro, jnp.where(valid, v_new, hall_v)
 
 
-def physical(effects: SensorEffects, robot: Robot) -> dict:
+def timed_gyro(timing: Array, gyro: Array) -> Array:
+    """``gyro_timing`` over rows in time (``... T G``): row ``k`` (the rate the step into row
+    ``k + 1`` integrates) becomes ``(1 - lambda) H_k + lambda g_{k+1}``, ``H_k`` the last
+    reading up to row ``k`` (0 before any: the filter's initial hold) and ``g_{k+1}`` the next
+    row's reading (``H_k`` where that is missing): what the step does with its hold and its
+    row's reading (``timed_hold``), so a recording and a stream agree to rounding."""
+    T = gyro.shape[-2]
+    valid = jnp.isfinite(gyro)
+    idx = jnp.where(valid, jnp.arange(T)[:, None], -1)
+    last = jax.lax.cummax(idx, axis=idx.ndim - 2)
+    held = jnp.take_along_axis(jnp.where(valid, gyro, 0.0), jnp.maximum(last, 0), axis=-2)
+    held = jnp.where(last >= 0, held, 0.0)
+    nxt = jnp.concatenate([gyro[..., 1:, :], jnp.full_like(gyro[..., :1, :], jnp.nan)], axis=-2)
+    ok = jnp.isfinite(nxt)
+    return jnp.where(ok, (1.0 - timing) * held + timing * jnp.where(ok, nxt, 0.0), held)
+
+
+def timed_hold(effects: SensorEffects | None, hold: Array, gyro: Array) -> Array:
+    """The rate one step integrates under ``gyro_timing``: ``(1 - lambda) hold + lambda g``
+    with this row's reading ``g`` (the hold where it is missing); ``hold`` as it is when the
+    effect is off."""
+    if effects is None or not effects.uses("gyro_timing"):
+        return hold
+    ok = jnp.isfinite(gyro)
+    return jnp.where(ok, (1.0 - effects.timing) * hold + effects.timing * jnp.where(ok, gyro, 0.0),
+                     hold)
+
+
+def physical(effects: SensorEffects, robot: Robot, step_s: float | None = None) -> dict:
     """The effects in use as ``{effect: value}`` in their ``UNITS``, keyed by column (the
     parameter file's ``effects`` entry)."""
     out = {}
     if effects.uses("offset"):
         out["offset"] = {"time_offset_s": float(effects.time_offset_s)}
+    if effects.uses("gyro_timing"):
+        lam = float(effects.timing)
+        out["gyro_timing"] = {"fraction_of_step": lam}
+        if step_s:
+            out["gyro_timing"]["gyro_delay_s"] = (lam - 0.5) * step_s
     if effects.uses("gyro_scale"):
         s = np.asarray(effects.gyro_scale_error, np.float64)
         out["gyro_scale"] = {n: float(s[i]) for i, n in enumerate(robot.gyro_names)}
@@ -217,10 +265,13 @@ def from_physical(doc: dict, robot: Robot, where: str, dtype=None) -> SensorEffe
     if unknown:
         raise ValueError(f"{where}: effects.{unknown[0]}: unknown effect; expected some of "
                          f"{', '.join(EFFECTS)}")
-    vals = {"offset": e.offset, "gyro_scale": e.gyro_scale, "play": e.play, "curve": e.curve}
+    vals = {k: getattr(e, k) for k in LEAVES}
     if "offset" in doc:
         vals["offset"] = num(obj(doc["offset"], "offset").get("time_offset_s"),
                              "offset.time_offset_s") / _OFFSET_UNIT_S
+    if "gyro_timing" in doc:
+        vals["timing"] = num(obj(doc["gyro_timing"], "gyro_timing").get("fraction_of_step"),
+                             "gyro_timing.fraction_of_step")
     if "gyro_scale" in doc:
         vals["gyro_scale"] = [num(x, f"gyro_scale.{n}") / _SCALE_UNIT
                               for n, x in zip(robot.gyro_names, per("gyro_scale",
@@ -235,8 +286,7 @@ def from_physical(doc: dict, robot: Robot, where: str, dtype=None) -> SensorEffe
                           for k in ("p2_deg", "p3_deg")]
                          for n, x in zip(robot.hall_names, per("curve", robot.hall_names))]
     dt = dtype or jnp.asarray(0.0).dtype
-    return SensorEffects(*(jnp.asarray(vals[k], dt) for k in
-                           ("offset", "gyro_scale", "play", "curve")), on=e.on)
+    return SensorEffects(*(jnp.asarray(vals[k], dt) for k in LEAVES), on=e.on)
 
 
 def parse_learn(text: str | None) -> tuple[str, ...]:

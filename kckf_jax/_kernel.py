@@ -52,7 +52,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from . import _exact
 from ._custom_types import BlockCov, BlockHall, BlockRates, BlockState, BlockValid
-from ._effects import corrected_readings
+from ._effects import corrected_readings, timed_hold
 from ._hall import hall_angle, hall_slope
 from ._health import screened_series
 from ._kalman import coordinate_update, symmetrise
@@ -390,7 +390,8 @@ class StepMoments(eqx.Module):
 def kalman_step_moments(params: Params, state: FilterState, inputs: SensorSeries,
                         method: str) -> tuple[FilterState, Estimate, StepMoments]:
     """``step`` of a Kalman method (``KALMAN_METHODS``), and its ``StepMoments``."""
-    inputs = plausible(params, inputs, method)
+    kept = state  # what a skipped update keeps
+    state, inputs = _row_inputs(params, state, inputs, method)
     F = None
     if method == "kckf3d":
         z, P, y, S, F, nu, s, vb, dt = _exact_parts(params, state, inputs)
@@ -405,7 +406,7 @@ def kalman_step_moments(params: Params, state: FilterState, inputs: SensorSeries
     # skipped: the whole state stays as it was, so nothing can poison it.
     ok = jnp.isfinite(z).all() & jnp.isfinite(P).all()
     new = jax.tree_util.tree_map(lambda a, b: jnp.where(ok, a, b), FilterState(z, P, hold),
-                                 state)
+                                 kept)
     est = (exact_block_estimate(params.robot, new.z, new.P) if method == "kckf3d"
            else block_estimate(st, new.z, new.P))
     return new, dataclasses.replace(est, skipped=~ok), StepMoments(y, S, nu, s, vb & ok, dt,
@@ -432,6 +433,21 @@ def exact_block_estimate(robot, z: BlockState, P: BlockCov) -> Estimate:
 
 def _kalman_step(params: Params, state: FilterState, inputs: SensorSeries, method: str):
     return kalman_step_moments(params, state, inputs, method)[:2]
+
+
+def _row_inputs(params: Params, state: FilterState, inputs: SensorSeries, method: str):
+    """One row as the step uses it (``plausible``), and the state whose hold the prediction
+    integrates: a row that comes alone (a stream's packet, not a row of a corrected recording)
+    has its learned gyro timing applied here, with the hold (``_effects.timed_hold``); the
+    hold the step keeps is this row's reading either way."""
+    alone = not inputs.corrected
+    inputs = plausible(params, inputs, method)
+    if alone and params.effects is not None:
+        gyro = inputs.gyro.astype(state.gyro_hold.dtype)
+        state = dataclasses.replace(state, gyro_hold=timed_hold(params.effects,
+                                                                state.gyro_hold, gyro))
+        inputs = dataclasses.replace(inputs, gyro=gyro)
+    return state, inputs
 
 
 def _baseline_step(params: Params, state: FilterState, inputs: SensorSeries, method: str):
@@ -465,7 +481,7 @@ def step(
     check_method(method)
     if method in KALMAN_METHODS:
         return _kalman_step(params, state, inputs, method)
-    return _baseline_step(params, state, plausible(params, inputs, method), method)
+    return _baseline_step(params, *_row_inputs(params, state, inputs, method), method)
 
 
 def exact_kinematics(method: str) -> bool:

@@ -18,6 +18,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from ._effects import EFFECTS, SensorEffects
+from ._effects import LEAVES as EFFECT_LEAVES
 from ._hall import DEG, PAPER_HALL_DEG
 from ._limits import SensorLimits
 from ._robot import Robot
@@ -204,8 +205,7 @@ class Params(eqx.Module):
         base = effects or self.effects or SensorEffects.zeros(self.robot,
                                                               dtype=self.log_q.dtype)
         return dataclasses.replace(self, effects=SensorEffects(
-            base.offset, base.gyro_scale, base.play, base.curve,
-            on=tuple(e for e in EFFECTS if e in on)))
+            *(getattr(base, k) for k in EFFECT_LEAVES), on=tuple(e for e in EFFECTS if e in on)))
 
 
 _LEAVES = ("log_q", "log_angle_rw", "log_bias_rw", "log_sigma_hall", "log_sigma_hall_v",
@@ -217,7 +217,7 @@ def leaf_names(params: Params) -> tuple[str, ...]:
     sensor effects' leaves where ``params`` has them (``get_leaf`` reads one)."""
     if params.effects is None:
         return _LEAVES
-    return _LEAVES + tuple(f"effects.{n}" for n in ("offset", "gyro_scale", "play", "curve"))
+    return _LEAVES + tuple(f"effects.{n}" for n in EFFECT_LEAVES)
 
 
 def get_leaf(params: Params, name: str):

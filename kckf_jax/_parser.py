@@ -65,7 +65,8 @@ def build_parser(commands: Mapping[str, Callable], demo_steps: int) -> argparse.
                    help="a sensor effect (repeatable): play=DEG (the joints' play as the Hall "
                         "sensors see it), curve=DEG (each Hall curve's RMS departure from "
                         "Eq. 1), sync=SEC (a motion-capture clock error meta.json does not "
-                        "know); docs/simulator.md, 'Sensor effects'")
+                        "know), delay=SEC (the gyros' delay against the Hall sensors); "
+                        "docs/simulator.md, 'Sensor effects'")
     s.set_defaults(func=commands['cmd_simulate'])
 
     f = sub.add_parser("filter", parents=[common], help="run one filter over a session")

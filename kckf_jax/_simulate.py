@@ -51,7 +51,8 @@ KINEMATICS = ("linear", "exact")
 DPS = DEG  # one degree per second, in rad/s
 #: ``kckf simulate --effect NAME=SIZE``: each name's ``SimConfig`` field (play and curve in deg,
 #: sync in s).
-EFFECTS = {"play": "hall_play_deg", "curve": "hall_curve_deg", "sync": "mocap_sync_error_s"}
+EFFECTS = {"play": "hall_play_deg", "curve": "hall_curve_deg", "sync": "mocap_sync_error_s",
+           "delay": "gyro_delay_s"}
 _CURVE_RANGE_DEG = 30.0  # u = theta / 30 deg: the span of the paper's Eq. 1 fit, Fig. 3
 # Salts the device seed for the effects' own generator (another stream than ``dev``'s 7919).
 _EFFECTS_SALT = 6151
@@ -90,6 +91,7 @@ class SimConfig:
     hall_play_deg: float = 0.0  # backlash half-width the Hall sensors see, deg (x U(0.75, 1.25))
     hall_curve_deg: float = 0.0  # RMS over +-30 deg of each Hall curve's P2/P3 deviation, deg
     mocap_sync_error_s: float = 0.0  # error of the recorded mocap_time_offset_s, s (signed)
+    gyro_delay_s: float = 0.0  # the gyros' delay against the Hall sensors (their filters), s
 
 
 class _Smooth:
@@ -112,7 +114,8 @@ def parse_effects(specs: Sequence[str]) -> dict[str, float]:
     """``kckf simulate --effect NAME=SIZE`` texts as ``SimConfig`` fields and values.
 
     Names: ``play`` (deg, ``hall_play_deg``), ``curve`` (deg, ``hall_curve_deg``), ``sync`` (s,
-    ``mocap_sync_error_s``, signed). A bad text raises ``ValueError`` naming it.
+    ``mocap_sync_error_s``, signed), ``delay`` (s, ``gyro_delay_s``). A bad text raises
+    ``ValueError`` naming it.
 
     Example:
         >>> parse_effects(["play=1", "sync=-0.02"])
@@ -425,6 +428,12 @@ def simulate(
     bias = zero_rate + temp_coeff * warm[:, None, None] + walk
     scale = 1 + cfg.gyro_scale_error * dev.standard_normal(shape)
     white = cfg.gyro_noise_density_dps_rthz * DPS * np.sqrt(cfg.sample_rate_hz / 2)
+    if cfg.gyro_delay_s > 0:
+        # The gyro's digital filter chain delays its reading: at t_k it gives the rate at
+        # t_k - d (the rate interpolated; before the start, the first sample's).
+        flat = link_rate.reshape(n, -1)
+        link_rate = np.stack([np.interp(t - cfg.gyro_delay_s, t, flat[:, i])
+                              for i in range(flat.shape[1])], axis=1).reshape(link_rate.shape)
     gyro = scale * link_rate + bias + white * rng.standard_normal(link_rate.shape)
     lsb = cfg.gyro_lsb_dps * DPS
     gyro = np.round(gyro / lsb) * lsb
@@ -506,6 +515,8 @@ def simulate(
                                      for n, a, b in zip(robot.hall_names, curve_p2, curve_p3)}
     if cfg.mocap_sync_error_s:
         effects["mocap_sync_error_s"] = float(cfg.mocap_sync_error_s)
+    if cfg.gyro_delay_s > 0:
+        effects["gyro_delay_s"] = float(cfg.gyro_delay_s)
     # reading = (1 + s) * rate: the factor minus 1 (exact: the factor lies in [0.5, 2]).
     effects["gyro_scale"] = {n: float(x) for n, x in zip(robot.gyro_names, (scale - 1).ravel())}
     simulation = {

@@ -4,6 +4,7 @@ stream and the exported step, the parameter file, and gradients that reach every
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from pathlib import Path
@@ -24,27 +25,30 @@ ROBOT = kk.Robot.from_spec("x,y")
 
 @pytest.fixture(scope="module")
 def session():
-    return kk.simulate(ROBOT, "cyclic", seed=3, duration_s=12.0)
+    return kk.simulate(ROBOT, "cyclic", seed=3, duration_s=12.0, drop_prob=0.02)
 
 
 def some_effects(robot: kk.Robot, on=EFFECTS) -> SensorEffects:
-    """Effects of realistic sizes: 1 % scales, 0.8-1.2 deg of play, curves of 0.5 deg, 20 ms."""
+    """Effects of realistic sizes: 20 ms, the step's midpoint, 1 % scales, 0.8-1.2 deg of
+    play, curves of 0.5 deg."""
     rng = np.random.default_rng(0)
     G, J, M = 3 * robot.n_links, robot.n_joint_axes, robot.n_hall
-    return SensorEffects(jnp.asarray(2.0), jnp.asarray(rng.uniform(-1, 1, G)),
+    return SensorEffects(jnp.asarray(2.0), jnp.asarray(0.5), jnp.asarray(rng.uniform(-1, 1, G)),
                          jnp.asarray(rng.uniform(0.8, 1.2, J)),
                          jnp.asarray(rng.uniform(-0.5, 0.5, (M, 2))), on=tuple(on))
 
 
 def reference_correction(params: kk.Params, effects: SensorEffects, gyro, hall_v):
     """The docs' definitions in NumPy float64, inverted with ``hall_voltage`` (its own Newton
-    iteration): gyro / (1 + s); theta(V') = theta(V) + h tanh(rate / 5 deg/s) - delta(theta)."""
+    iteration): gyro / (1 + s); theta(V') = theta(V) + h tanh(rate / 5 deg/s) - delta(theta);
+    the gyro timing is the step's (``test_gyro_timing_of_a_recording_is_the_streams``)."""
     a, b, c, d, sign = (np.asarray(x, np.float64) for x in params.hall_coeffs)
     gyro = np.asarray(gyro, np.float64) / (1 + np.asarray(effects.gyro_scale, np.float64) / 100)
     theta = sign * (a * np.exp(b * hall_v) - c * np.exp(-d * hall_v))
     plus, minus = ROBOT.rate_pairs
     J = ROBOT.n_joint_axes
     rate = gyro[:, plus[:J]] - gyro[:, minus[:J]]
+    rate = np.where(np.isfinite(rate), rate, 0.0)  # a missing gyro: no play correction
     lag = np.asarray(effects.play, np.float64) * DEG * np.tanh(rate / (5 * DEG))
     u = theta / (30 * DEG)
     c2, c3 = (np.asarray(effects.curve, np.float64)[:, k] * DEG for k in (0, 1))
@@ -58,13 +62,33 @@ def test_corrections_match_an_independent_reference(session):
     effects = some_effects(ROBOT)
     rows = slice(200, 700)  # moving: the joint rates are large and of both signs
     gyro, hall_v = session.gyro[rows], session.hall_v[rows]
+    effects = dataclasses.replace(effects, on=tuple(e for e in EFFECTS if e != "gyro_timing"))
     got_g, got_v = corrected_readings(effects, ROBOT, params.hall_coeffs, jnp.asarray(gyro),
                                       jnp.asarray(hall_v))
     ref_g, ref_v = reference_correction(params, effects, gyro, hall_v)
     np.testing.assert_allclose(np.asarray(got_g), ref_g, rtol=1e-12, atol=1e-15)
-    np.testing.assert_allclose(np.asarray(got_v), ref_v, rtol=0, atol=1e-11)
+    np.testing.assert_allclose(np.asarray(got_v), ref_v, rtol=0, atol=1e-11)  # NaN alike
     moved = np.abs(np.asarray(got_v) - hall_v)
-    assert moved.max() > 1e-3  # the corrections did something
+    assert np.nanmax(moved) > 1e-3  # the corrections did something
+
+
+def test_gyro_timing_of_a_recording_is_the_streams():
+    """The recording's transform (``timed_gyro``) against the hold written out as a loop: the
+    step into row k + 1 integrates (1 - lambda) H_k + lambda g_{k+1}, with drops."""
+    from kckf_jax._effects import timed_gyro
+
+    rng = np.random.default_rng(1)
+    g = rng.standard_normal((40, 3))
+    g[rng.random(g.shape) < 0.2] = np.nan
+    g[:3, 0] = np.nan  # no reading yet: the initial hold (0)
+    lam = 0.37
+    got = np.asarray(timed_gyro(jnp.asarray(lam), jnp.asarray(g)))
+    hold = np.zeros(3)
+    for k in range(40):
+        hold = np.where(np.isfinite(g[k]), g[k], hold)
+        nxt = g[k + 1] if k + 1 < 40 else np.full(3, np.nan)
+        want = np.where(np.isfinite(nxt), (1 - lam) * hold + lam * np.nan_to_num(nxt), hold)
+        np.testing.assert_allclose(got[k], want, rtol=1e-14, atol=1e-15)
 
 
 def test_missing_readings_stay_missing_without_nan_gradients(session):
@@ -74,7 +98,12 @@ def test_missing_readings_stay_missing_without_nan_gradients(session):
     gyro[5, 3], hall_v[7, 1] = np.nan, np.nan
     g, v = corrected_readings(effects, ROBOT, params.hall_coeffs, jnp.asarray(gyro),
                               jnp.asarray(hall_v))
-    assert np.isnan(np.asarray(g)[5, 3]) and np.isnan(np.asarray(v)[7, 1])
+    assert np.isnan(np.asarray(v)[7, 1])
+    assert np.isfinite(np.asarray(g)[5, 3])  # timed: the hold blended with the next reading
+    untimed = dataclasses.replace(effects, on=("gyro_scale",))
+    g, _ = corrected_readings(untimed, ROBOT, params.hall_coeffs, jnp.asarray(gyro),
+                              jnp.asarray(hall_v))
+    assert np.isnan(np.asarray(g)[5, 3])
     assert np.isfinite(np.asarray(v)[~np.isnan(hall_v)]).all()
 
     def total(e):
@@ -148,8 +177,8 @@ def test_stream_and_export_correct_as_the_batch_filter(session, tmp_path):
         np.testing.assert_allclose(np.asarray(got, np.float64), batch, atol=1e-9)
         if not baked:
             names = [n for n, _ in step.header["param_leaves"]]
-            assert names[-4:] == ["effects.offset", "effects.gyro_scale", "effects.play",
-                                  "effects.curve"]
+            assert names[-5:] == ["effects.offset", "effects.timing", "effects.gyro_scale",
+                                  "effects.play", "effects.curve"]
 
 
 def test_parameter_file_round_trip(tmp_path):
@@ -186,7 +215,7 @@ def test_clock_offset_moves_the_comparison_not_the_filter(session):
         losses = []
         for tau in taus:
             e = SensorEffects.zeros(ROBOT, on=("offset",))
-            e = SensorEffects(jnp.asarray(tau / 0.01), e.gyro_scale, e.play, e.curve, on=e.on)
+            e = dataclasses.replace(e, offset=jnp.asarray(tau / 0.01))
             losses.append(float(kk.loss_fn(params.with_effects(e.on, e), batch)))
         return taus[int(np.argmin(losses))]
 

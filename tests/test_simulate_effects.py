@@ -255,7 +255,7 @@ def test_cli_writes_the_effects(tmp_path, capsys):
 
 @pytest.mark.parametrize("specs, message", [
     (["wobble=1"], "--effect 'wobble=1': unknown name 'wobble'; expected one of play, curve, "
-                   "sync"),
+                   "sync, delay"),
     (["play"], "--effect 'play': expected NAME=SIZE, e.g. play=1"),
     (["curve=abc"], "--effect 'curve=abc': size 'abc' is not a number"),
     (["play=-1"], "--effect 'play=-1': the size must be a finite number >= 0"),
@@ -271,3 +271,21 @@ def test_cli_bad_effect_is_one_line_and_exit_2(tmp_path, capsys, specs, message)
     lines = captured.err.splitlines()
     assert len(lines) == 1 and lines[0] == f"kckf simulate: error: {message}", captured.err
     assert not out.exists()
+
+
+def test_gyro_delay_reads_the_rate_late():
+    """``gyro_delay_s``: the reading at t_k is the rate at t_k - d, the draws unchanged."""
+    d = 0.004
+    quiet = SimConfig(gyro_noise_density_dps_rthz=0.0)  # white noise is not delayed
+    base = simulate(ROBOT, "cyclic", seed=2, duration_s=6.0, config=quiet)
+    late = simulate(ROBOT, "cyclic", seed=2, duration_s=6.0,
+                    config=SimConfig(gyro_noise_density_dps_rthz=0.0, gyro_delay_s=d))
+    assert late.extra_meta["simulation"]["effects"]["gyro_delay_s"] == d
+    np.testing.assert_array_equal(late.hall_v, base.hall_v)
+    moved = np.stack([np.interp(base.t - d, base.t, base.gyro[:, i])
+                      for i in range(base.gyro.shape[1])], axis=1)
+    lsb = SimConfig().gyro_lsb_dps * np.pi / 180
+    rows = slice(50, None)  # after the first rows (before the start: the first sample's rate)
+    err = np.abs(late.gyro[rows] - moved[rows])
+    assert np.max(err) < 3 * lsb  # rounding of both to the LSB, and interpolating twice
+    assert np.max(np.abs(late.gyro[rows] - base.gyro[rows])) > 20 * lsb  # the delay shows
