@@ -86,3 +86,21 @@ def cholesky_solve(S: Float[Array, "n n *L"], B: Float[Array, "n k *L"]) -> Floa
     for i in reversed(range(n)):  # L' x = y
         x[i] = (y[i] - sum((L[k][i] * x[k] for k in range(i + 1, n)), zero)) / L[i][i]
     return jnp.stack(x)
+
+
+def fused_pairs(
+    angle: Float[Array, " M"], r: Float[Array, " M"], valid: Bool[Array, " M"]
+) -> tuple[Float[Array, " J"], Float[Array, " J"], Bool[Array, " J"]]:
+    """Combine the ``l`` and ``r`` readings of every joint axis into one measurement.
+
+    Two independent readings of the same angle are equivalent to one at their
+    inverse-variance weighted mean with variance ``1 / (1/r_l + 1/r_r)``: the posterior is the
+    same as after the paper's two rows (Eqs. 5, 8). A missing reading gets weight 0.
+    """
+    # A variance floor of 1e-12 rad^2 (6e-5 deg) keeps 1/r finite for a zero noise parameter.
+    w = jnp.where(valid, 1.0 / jnp.maximum(r, 1e-12), 0.0).reshape(-1, 2)
+    W = jnp.sum(w, axis=1)
+    ok = W > 0
+    Ws = jnp.where(ok, W, 1.0)
+    h = jnp.sum(w * angle.reshape(-1, 2), axis=1) / Ws
+    return h, 1.0 / Ws, ok

@@ -55,7 +55,7 @@ from ._custom_types import BlockCov, BlockHall, BlockRates, BlockState, BlockVal
 from ._effects import corrected_readings, timed_hold
 from ._hall import hall_angle, hall_slope
 from ._health import screened_series
-from ._kalman import coordinate_update, symmetrise
+from ._kalman import coordinate_update, fused_pairs, symmetrise
 from ._model import (
     FILTER_METHODS,
     ProcessNoise,
@@ -212,24 +212,6 @@ def hall_measurements(
     else:
         r = params.sigma_hall**2 * jnp.ones_like(v)
     return angle, r, valid
-
-
-def fused_pairs(
-    angle: Float[Array, " M"], r: Float[Array, " M"], valid: Bool[Array, " M"]
-) -> tuple[Float[Array, " J"], Float[Array, " J"], Bool[Array, " J"]]:
-    """Combine the ``l`` and ``r`` readings of every joint axis into one measurement.
-
-    Two independent readings of the same angle are equivalent to one at their
-    inverse-variance weighted mean with variance ``1 / (1/r_l + 1/r_r)``: the posterior is the
-    same as after the paper's two rows (Eqs. 5, 8). A missing reading gets weight 0.
-    """
-    # A variance floor of 1e-12 rad^2 (6e-5 deg) keeps 1/r finite for a zero noise parameter.
-    w = jnp.where(valid, 1.0 / jnp.maximum(r, 1e-12), 0.0).reshape(-1, 2)
-    W = jnp.sum(w, axis=1)
-    ok = W > 0
-    Ws = jnp.where(ok, W, 1.0)
-    h = jnp.sum(w * angle.reshape(-1, 2), axis=1) / Ws
-    return h, 1.0 / Ws, ok
 
 
 class BlockInputs(NamedTuple):
