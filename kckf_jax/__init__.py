@@ -18,7 +18,10 @@ The public API (everything else lives in private modules; docs/architecture.md m
   costs, estimated), ``SmootherLayout`` (how the smoother lays out a batch for a path);
 * offline analysis: ``smooth``, ``smooth_batch`` (the fixed-interval RTS smoother; its steady
   layout ``SteadySmoother``), ``hall_nll`` (the Hall readings' negative log-likelihood),
-  ``consistency_figures`` (NIS and NEES against a consistent filter's interval);
+  ``consistency_figures`` (NIS and NEES against a consistent filter's interval),
+  ``diagnostics`` (where the error comes from: the innovations' whiteness and the error
+  against motion capture decomposed; a ``Diagnostics`` of ``Whiteness`` per channel and
+  ``ErrorParts`` per angle);
 * the paths (how the same estimates are computed): ``AbstractPath``, ``Sequential``,
   ``Steady``, ``Lanes``, ``Segments``, ``Parallel``, ``Auto``;
 * the Hall model (Eq. 1; coefficients in rad): ``hall_angle``, ``hall_slope``,
@@ -51,6 +54,10 @@ from ._cpu_loops import CpuLoops as CpuLoops
 from ._cpu_loops import cpu_loops as cpu_loops
 from ._cpu_loops import enable_cpu_loops as enable_cpu_loops
 from ._demo import sample_data_dir as sample_data_dir
+from ._diagnostics import Diagnostics as Diagnostics
+from ._diagnostics import ErrorParts as ErrorParts
+from ._diagnostics import Whiteness as Whiteness
+from ._diagnostics import diagnostics as diagnostics
 from ._effects import EFFECTS as EFFECTS
 from ._effects import SensorEffects as SensorEffects
 from ._export import export_step as export_step

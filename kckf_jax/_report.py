@@ -11,19 +11,19 @@ import concurrent.futures
 import dataclasses
 from collections.abc import Sequence
 
-import equinox as eqx
 import numpy as np
 
+from ._diagnostics import diagnostics, session_innovations
 from ._gaps import GapPolicy, find_gaps
 from ._gaps import describe as describe_gaps
 from ._kernel import KALMAN_METHODS
-from ._likelihood import consistency, innovations
+from ._likelihood import consistency
 from ._metrics import rmse_table
 from ._params import Params
 from ._paths import AbstractPath
 from ._run import filter_sessions, series_faults, session_params, session_series
 from ._screen import OUT_OF_RANGE, describe_faults, fault_stretches
-from ._session import Session, split_at_gaps
+from ._session import Session
 from ._setup_check import describe as describe_setup
 from ._setup_check import setup_check
 
@@ -126,22 +126,16 @@ def consistency_figures(sessions: Sequence[Session], method: str, estimates,
              "nees": consistency(np.concatenate(nees_all), independent=False)}, rows)
 
 
-def session_innovations(sessions: Sequence[Session], method: str,
-                        params: Params | None = None, gaps: GapPolicy = GapPolicy()) -> list:
-    """Each session's fused Hall innovations ``(nu, var, valid)`` (NumPy float64, ``T Nb m``)
-    under ``method``, restarted where ``gaps`` restarts the filter."""
-    out = []
-    for s, p in zip(sessions, session_params(sessions, params)):
-        parts = [[np.asarray(x, np.float64) for x in
-                  _innovations(p, session_series(piece, p.log_q.dtype), method)]
-                 for piece in split_at_gaps(s, gaps)]
-        out.append(tuple(np.concatenate(x) for x in zip(*parts)))
-    return out
-
-
-@eqx.filter_jit
-def _innovations(params, series, method):
-    return innovations(params, series, method)
+def clock_corrected(sessions: Sequence[Session], params: Params | None) -> list[Session]:
+    """``sessions`` with motion capture aligned by the learned clock offset of ``params``
+    (``Params.effects``, ``"offset"``: the motion capture lags the sensors by ``tau``, so a
+    frame belongs ``tau`` earlier on the sensors' clock); as they are without one."""
+    effects = None if params is None else params.effects
+    if effects is None or not effects.uses("offset"):
+        return list(sessions)
+    tau = float(effects.time_offset_s)
+    return [dataclasses.replace(s, mocap_time_offset_s=s.mocap_time_offset_s - tau)
+            if s.mocap is not None else s for s in sessions]
 
 
 def evaluate_sessions(sessions: Sequence[Session], methods: Sequence[str],
@@ -157,7 +151,9 @@ def evaluate_sessions(sessions: Sequence[Session], methods: Sequence[str],
     the document has what is wrong with the data (``data_faults``) and ``"warnings"``: one
     line for people per finding, and per method whose RMSE is over fewer steps than have
     truth. ``smooth``: the Kalman methods' smoothed estimates are scored (``"smoothed":
-    true``; their NIS is the filter's). ``"_nis_rows"`` (not for the JSON) has each Kalman
+    true``; their NIS is the filter's). The Kalman filters' ``"diagnostics"``
+    (``_diagnostics.diagnostics``): the whiteness of the filter's innovations, the error of
+    the estimates scored decomposed. ``"_nis_rows"`` (not for the JSON) has each Kalman
     method's per-row NIS for the plots. ``path``: as ``filter_sessions``' (the command passes
     ``Auto(runs=1)``: it filters each batch once).
 
@@ -169,6 +165,7 @@ def evaluate_sessions(sessions: Sequence[Session], methods: Sequence[str],
                 f"{s.path}: no motion capture overlaps the sensors (mocap.csv is needed to "
                 "evaluate)"
             )
+    sessions = clock_corrected(sessions, params)
     # The data's faults and set-up as the methods see them: under exact kinematics when a
     # method models them (``_screen.stand_ins``, ``setup_check``), so that the paper's
     # first-order checks do not refuse data that kckf3d is there for; each method's own
@@ -200,6 +197,8 @@ def evaluate_sessions(sessions: Sequence[Session], methods: Sequence[str],
             figures, nis_rows[m] = consistency_figures(sessions, m, est, params, gaps,
                                                        pending[m].result())
             out[m].update(figures)
+            out[m]["diagnostics"] = diagnostics(sessions, est, pending[m].result(), params, m,
+                                                gaps=gaps, burn_in_s=burn_in_s).to_json()
             if smooth:
                 out[m]["smoothed"] = True
         warnings += estimate_faults(sessions, m, est)

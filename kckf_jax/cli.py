@@ -128,12 +128,16 @@ def cmd_evaluate(args) -> int:
     _warn(args, doc["warnings"])
     if args.plot:
         from ._report import session_name
-        from .plots import plot_session
+        from .plots import plot_diagnostics, plot_session
 
         for i, s in enumerate(sessions):
             plot_session(s, {m: angles[m][i] for m in methods}, args.plot, session_name(s.path),
                          gaps=doc["gaps"].get(s.path, []), faults=doc["faults"][s.path],
                          nis={m: doc["_nis_rows"][m][i] for m in doc["_nis_rows"]})
+        for m, r in doc["methods"].items():
+            if "diagnostics" in r:
+                plot_diagnostics(r["diagnostics"], os.path.join(args.plot, f"diagnostics_{m}.png"),
+                                 m)
         _say(args, f"figures in {args.plot}")
     doc.pop("_nis_rows", None)
     if args.json:
@@ -141,6 +145,11 @@ def cmd_evaluate(args) -> int:
     else:
         _say(args, format_table(doc["methods"], robot, methods,
                                 f"RMSE (deg) over {len(sessions)} session(s)"))
+        from ._diagnostics import describe
+
+        for m, r in doc["methods"].items():
+            if "diagnostics" in r:
+                _say(args, *describe(m, r["diagnostics"]))
     return 0
 
 

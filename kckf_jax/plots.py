@@ -160,3 +160,73 @@ def plot_drift(t: np.ndarray, errors_deg: Mapping[str, np.ndarray], path: str,
     _save(fig, path)
     plt.close(fig)
     return path
+
+
+def plot_diagnostics(diag: Mapping, path: str, title: str = "") -> str:
+    """Where a Kalman filter's error comes from (docs/diagnostics.md), one figure: above,
+    each innovation channel's autocorrelation at lags ``1..k`` against its 95 % band (a
+    white channel stays inside); below, each angle's error decomposed: its RMS, each group's
+    part and the rest (deg), a group that is not significant drawn pale and hatched.
+
+    Args:
+        diag: the ``"diagnostics"`` entry of ``kckf evaluate --json`` (``Diagnostics.to_json()``).
+        path: the PNG to write (its folder is created if needed).
+        title: the figure's title (the method's name, say).
+    """
+    plt = _plt()
+    os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
+    white, errors = diag["whiteness"], diag["errors"]
+    fig, (top, bottom) = plt.subplots(2, 1, figsize=(9, 7.0))
+    band, lo, hi = 0.0, 0.0, 0.0
+    for i, (name, w) in enumerate(white.items()):
+        acf = np.array([np.nan if x is None else x for x in w["acf"]], np.float64)
+        lags = np.arange(1, acf.size + 1) + (i - (len(white) - 1) / 2) * 0.08
+        verdict = "white" if w["white"] else "not white"
+        top.plot(lags, acf, "o-", ms=3, lw=1,
+                 label=f"{name}: Q = {w['q']:.4g} (95 %: {w['q95']:.4g}), {verdict}")
+        band = max(band, w["band"] or 0.0)
+        lo, hi = min(lo, np.nanmin(acf, initial=0.0)), max(hi, np.nanmax(acf, initial=0.0))
+    if white:
+        top.axhspan(-band, band, color="0.85", label="95 % band of white innovations")
+        lo, hi = min(lo, -band), max(hi, band)
+        top.set_ylim(lo - 0.1 * (hi - lo), hi + 0.6 * (hi - lo))  # room for the legend
+    top.axhline(0.0, color="k", lw=0.6)
+    top.set_xticks(np.arange(1, diag["lags"] + 1, max(diag["lags"] // 10, 1)))
+    top.set_xlabel("lag (rows)")
+    top.set_ylabel("autocorrelation")
+    top.set_title(f"normalised innovations ({diag['whiteness_of']})", fontsize=9)
+    top.grid(alpha=0.3)
+    top.legend(fontsize=7, ncol=2, loc="upper center")
+    parts = ["total", "bias", "direction", "angle", "time", "rest"]
+    colours = {"total": "0.3", "bias": "C0", "direction": "C3", "angle": "C2", "time": "C1",
+               "rest": "0.65"}
+    width = 0.8 / len(parts)
+    x = np.arange(len(errors))
+    for j, part in enumerate(parts):
+        heights, pale = [], []
+        for p in errors.values():
+            if part in ("total", "rest"):
+                heights.append(p["rms_deg" if part == "total" else "rest_deg"])
+                pale.append(False)
+            else:
+                heights.append(p["groups"][part]["part_deg"])
+                pale.append(not p["groups"][part]["significant"])
+        for xi, h, faint in zip(x, heights, pale):
+            bottom.bar(xi + (j - (len(parts) - 1) / 2) * width, h or 0.0, width,
+                       color=colours[part], alpha=0.3 if faint else 0.9,
+                       hatch="//" if faint else None, edgecolor=colours[part])
+    bottom.set_xticks(x, list(errors), fontsize=8)
+    bottom.set_ylim(0, 1.2 * max([p["rms_deg"] or 0.0 for p in errors.values()] + [0.1]))
+    bottom.set_ylabel("RMS (deg)")
+    bottom.set_title(f"{diag['decomposed']} error against motion capture, decomposed "
+                     "(pale, hatched: not significant)", fontsize=9)
+    bottom.grid(alpha=0.3, axis="y")
+    bottom.legend([plt.Rectangle((0, 0), 1, 1, color=colours[p]) for p in parts]
+                  + [plt.Rectangle((0, 0), 1, 1, facecolor="C0", alpha=0.3, hatch="//")],
+                  parts + ["not significant"], fontsize=7, ncol=7)
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    _save(fig, path)
+    plt.close(fig)
+    return path

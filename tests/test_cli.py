@@ -49,7 +49,7 @@ def test_evaluate_json_layout(session, capsys):
     assert doc["sessions"] == [session]
     for m in ("kckf", "kf", "hall_l"):
         r = doc["methods"][m]
-        kalman = {"nis", "nees"} if m in ("kckf", "kf") else set()
+        kalman = {"nis", "nees", "diagnostics"} if m in ("kckf", "kf") else set()
         assert set(r) == {"rmse_deg", "mean_rmse_deg", "per_session", "path", "steps_with_truth",
                           "steps_scored", "skipped_updates"} | kalman
         if kalman:
@@ -90,7 +90,7 @@ def test_evaluate_table_goes_to_stderr_and_plots(session, tmp_path, capsys):
     assert code == 0 and out == ""
     assert "KCKF" in err and "Gyro" in err and "phi_y" in err
     assert sorted(os.listdir(tmp_path / "fig")) == ["cli0_s1_joints.png", "cli0_s1_nis.png",
-                                                     "cli0_s1_torso.png"]
+                                                     "cli0_s1_torso.png", "diagnostics_kckf.png"]
 
 
 def test_filter_writes_estimates_named_as_mocap(session, tmp_path, capsys):
