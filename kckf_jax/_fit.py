@@ -25,6 +25,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float
 
 from ._effects import EFFECTS, angle_rates
+from ._effects import LEAVES as EFFECT_LEAVES
 from ._gaps import GapPolicy
 from ._kernel import KALMAN_METHODS, SensorSeries, init_state, pad_series
 from ._likelihood import hall_nll
@@ -362,10 +363,18 @@ class FitConfig:
         if self.smooth and self.method not in KALMAN_METHODS:
             raise ValueError(f"FitConfig.smooth: smoothing needs a Kalman method, got "
                              f"{self.method!r}")
-        unknown = sorted(set(self.freeze) - set(_LEAVES))
+        leaves = _LEAVES + tuple(f"effects.{n}" for n in EFFECT_LEAVES)
+        unknown = sorted(set(self.freeze) - set(leaves))
         if unknown:
             raise ValueError(f"FitConfig.freeze: unknown leaf {unknown[0]!r}; expected names "
-                             f"from {', '.join(_LEAVES)}")
+                             f"from {', '.join(leaves)}")
+        effect = {f"effects.{n}": e for n, e in zip(EFFECT_LEAVES, (
+            "offset", "gyro_timing", "gyro_scale", "play", "curve"))}
+        off = [n for n in self.freeze if n in effect and effect[n] not in self.learn]
+        if off:
+            raise ValueError(f"FitConfig.freeze: {off[0]!r} belongs to the effect "
+                             f"{effect[off[0]]!r}, which is not learned: add it to learn (its "
+                             "value then comes from the starting parameters) or leave it out")
         if self.method not in KALMAN_METHODS:
             raise ValueError(f"FitConfig.method: expected one of {', '.join(KALMAN_METHODS)}, "
                              f"got {self.method!r}")

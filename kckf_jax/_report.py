@@ -29,7 +29,7 @@ from ._setup_check import setup_check
 
 PAPER_TABLE_METHODS = ("gyro", "hall_l", "hall_r", "kf", "kckf")
 TABLE_LABELS = {"gyro": "Gyro", "hall_l": "Hall l", "hall_r": "Hall r", "kf": "Std KF",
-                "kckf": "KCKF", "kckf_fit": "KCKF fit"}
+                "kckf": "KCKF", "kckf_fit": "KCKF fit", "kckf_fit_smoothed": "smoothed"}
 
 
 def data_faults(sessions: Sequence[Session], params: Params | None = None,

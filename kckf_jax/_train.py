@@ -122,9 +122,15 @@ def optimizer(learning_rate: float, clip_norm: float | None,
 def filter_spec(params, freeze: Sequence[str]):
     """``eqx.partition`` spec: ``True`` for every leaf but the ``freeze``d ones."""
     spec = jax.tree_util.tree_map(lambda _: True, params)
-    for name in freeze:
-        spec = eqx.tree_at(lambda p, n=name: getattr(p, n), spec, False)
+    for name in freeze:  # a leaf's name, or a dotted path into a sub-module ("effects.timing")
+        spec = eqx.tree_at(lambda p, n=name: _leaf(p, n), spec, False)
     return spec
+
+
+def _leaf(tree, name: str):
+    for part in name.split("."):
+        tree = getattr(tree, part)
+    return tree
 
 
 @dataclass

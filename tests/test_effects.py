@@ -236,3 +236,17 @@ def test_fit_reaches_every_learned_leaf(session):
     assert np.abs(np.asarray(e.gyro_scale)).max() == 0
     with pytest.raises(ValueError, match="unknown effect 'backlash'"):
         kk.FitConfig(learn=("backlash",))
+
+
+def test_freezing_an_effect_leaf_keeps_its_value(session):
+    """The offset recipe's second step: the timing frozen at its starting value, the offset
+    learned; freezing a leaf of an effect that is not learned is refused, naming it."""
+    start = kk.Params.paper_defaults(ROBOT, session.hall_models).with_effects(
+        ("gyro_timing",), some_effects(ROBOT))
+    cfg = kk.FitConfig(steps=2, val_every=1, learn=("gyro_timing", "offset"),
+                       freeze=("effects.timing",))
+    res = kk.fit([session], (), cfg, init=start)
+    assert float(res.params.effects.timing) == float(start.effects.timing)
+    assert float(res.params.effects.offset) != float(start.effects.offset)
+    with pytest.raises(ValueError, match="'effects.play' belongs to the effect 'play'"):
+        kk.FitConfig(freeze=("effects.play",))
