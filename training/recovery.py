@@ -10,6 +10,12 @@ coefficients, the noise scales and the fitted filter's consistency (the mean NIS
 innovations on the held-out sessions, with a consistent filter's 95 % interval). ``--loss``:
 the fitting loss (``rmse``, ``nll``: no motion capture used, ``rmse+nll``). Writes
 ``training/results/recovery.json`` (``recovery_<loss>.json`` for another loss).
+
+``--config training/configs/recovery_effects.json``: the sessions also carry sensor effects
+(``"effects": {"sim": SimConfig fields, "learn": effects to learn}``; docs/simulator.md
+"Sensor effects"), and the fit learns them: each learned effect's value against the
+simulator's (``effects_recovery``, as ``training/effects.py`` judges it). Writes
+``training/results/recovery_effects.json``.
 """
 
 from __future__ import annotations
@@ -20,11 +26,13 @@ import os
 import time
 
 import numpy as np
+from effects import recovery as effect_recovery  # training/effects.py, beside this one
 
 from kckf_jax import (
     FitConfig,
     Params,
     Robot,
+    SimConfig,
     consistency_figures,
     enable_cpu_loops,  # noqa: E402
     filter_sessions,
@@ -88,10 +96,12 @@ def run(cfg: dict) -> dict:
     robot = Robot.from_spec(cfg["joints"])
     models = perturbed_models(robot, cfg["perturbation"], cfg["perturbation_seed"])
 
+    effects = cfg.get("effects", {})
+
     def sim(seed):
         return simulate(robot, cfg["kind"], seed=seed, duration_s=cfg["duration_s"],
                         device_seed=cfg["device_seed"], drop_prob=cfg["drop_prob"],
-                        true_hall_models=models)
+                        true_hall_models=models, config=SimConfig(**effects.get("sim", {})))
 
     train = [sim(s) for s in cfg["train_seeds"]]
     test = [sim(s) for s in cfg["test_seeds"]]
@@ -100,7 +110,7 @@ def run(cfg: dict) -> dict:
     t0 = time.perf_counter()
     loss = cfg.get("loss", "rmse")
     res = fit(train, (), FitConfig(steps=cfg["steps"], learning_rate=cfg["learning_rate"],
-                                   loss=loss))
+                                   loss=loss, learn=tuple(effects.get("learn", ()))))
     fitted = res.params
 
     def score(p):
@@ -114,7 +124,7 @@ def run(cfg: dict) -> dict:
     fit_coef = np.stack([a / DEG, b, c / DEG, d], axis=1)
     true_coef = np.array([[models[n][k] for k in "abcd"] for n in robot.hall_names])
     rel = 100 * (fit_coef / true_coef - 1)
-    return {
+    out = {
         "config": cfg,
         "fit_seconds": round(time.perf_counter() - t0, 1),
         "loss": loss,
@@ -148,6 +158,10 @@ def run(cfg: dict) -> dict:
             "bias_rw_true_deg_s_rts": TRUE_BIAS_RW / DEG,
         },
     }
+    if effects.get("learn"):
+        out["effects_recovery"] = {e: effect_recovery(e, fitted, test[0])
+                                   for e in effects["learn"]}
+    return out
 
 
 def main():
@@ -163,6 +177,7 @@ def main():
         cfg["loss"] = args.loss
     loss = cfg.get("loss", "rmse")
     suffix = "" if loss == "rmse" else "_" + loss.replace("+", "_")
+    suffix += "_effects" if cfg.get("effects") else ""
     args.out = args.out or os.path.join(HERE, "results", f"recovery{suffix}.json")
     out = run(cfg)
     os.makedirs(os.path.dirname(args.out), exist_ok=True)
@@ -176,6 +191,9 @@ def main():
           f"NIS {out['heldout_nis']['fitted']}")
     print("coefficient error (%):", out["coefficient_error_percent"])
     print("Hall curves, scale and offset error:", out["hall_scale_offset"])
+    for name, r in out.get("effects_recovery", {}).items():
+        print(f"effect {name}: within 25 %: {r['within_25']}; relative errors "
+              f"{r['relative_error']}")
     print(f"wrote {args.out}")
 
 
