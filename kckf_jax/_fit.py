@@ -517,7 +517,28 @@ def fit(
                    val_loss=val_loss, checkpoint=checkpoint, resume=resume, identity=identity,
                    callback=callback, place=lambda x: jax.device_put(x, replicated))
     result.seconds = time.perf_counter() - t0
+    _warn_lagging_timing(result.params, config, sessions[0].sample_rate_hz)
     return result
+
+
+def _warn_lagging_timing(params: Params, config: FitConfig, rate_hz: float) -> None:
+    """A learned gyro timing below 0 makes the filter's angles lag (the gyros would read
+    ahead of the Hall sensors by more than half a step, which no sensor does): what a fit on
+    motion capture that lags the sensors learns from the RMSE (docs/fitting.md, "offset").
+    Said, not refused: the fit did what it was asked."""
+    e = params.effects
+    if e is None or "gyro_timing" not in e.on or config.loss == "nll":
+        return
+    lam = float(e.timing)
+    if lam >= 0.0:
+        return
+    import warnings
+
+    warnings.warn(
+        f"the learned gyro timing is {lam:.2f} of a step: the filter's angles now lag by about "
+        f"{1000 * (0.5 - lam) / rate_hz:.0f} ms, as motion capture that lags the sensors "
+        "would teach; learn the timing from the likelihood (--loss nll) and the clock offset "
+        "from the RMSE with the timing frozen (docs/fitting.md, 'offset')", stacklevel=3)
 
 
 def _screen_batch(params: Params, batch: Batch, method: str) -> Batch:

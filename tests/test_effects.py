@@ -246,3 +246,23 @@ def test_fit_reaches_every_learned_leaf_and_keeps_a_frozen_one(session):
         kk.FitConfig(freeze=("effects.play",))
     with pytest.raises(ValueError, match="unknown effect 'backlash'"):
         kk.FitConfig(learn=("backlash",))
+
+
+def test_a_fit_that_makes_the_filter_lag_says_so():
+    """On motion capture 30 ms late, the timing learned from the RMSE goes below 0 (the filter
+    learns to lag): the fit warns, naming the remedy; on motion capture on time it does not."""
+    import warnings
+
+    def fit_on(sync):
+        s = kk.simulate(ROBOT, "cyclic", seed=5, duration_s=8.0,
+                        config=kk.SimConfig(mocap_sync_error_s=sync))
+        with warnings.catch_warnings(record=True) as got:
+            warnings.simplefilter("always")
+            res = kk.fit([s], (), kk.FitConfig(steps=30, learning_rate=0.1,
+                                               learn=("gyro_timing",)))
+        return float(res.params.effects.timing), [str(w.message) for w in got]
+
+    lam, said = fit_on(0.03)
+    assert lam < 0 and any("now lag" in m and "--loss nll" in m for m in said), (lam, said)
+    lam, said = fit_on(0.0)
+    assert lam > 0 and not any("now lag" in m for m in said), (lam, said)
