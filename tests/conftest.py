@@ -95,17 +95,3 @@ def demo_results(tmp_path_factory):
     assert r.returncode == 0, r.stderr[-3000:]
     return json.loads((out / "results.json").read_text()) | {
         "_out": str(out), "_stdout": r.stdout, "_stderr": r.stderr}
-
-
-#: The slowest test files first (their sums of test time, 2026-12-05: test_fit 105 s, test_paths
-#: 76, test_exact_uses 75, test_effects 71, test_notebooks 60, test_stream 60, test_filter 57,
-#: test_cli 54, ...), so that the two workers of ``--dist loadfile`` (whole files, handed out
-#: in collection order) end together instead of one waiting on the other's last big file.
-_SLOW_FIRST = ("test_fit.py", "test_paths.py", "test_exact_uses.py", "test_notebooks.py",
-               "test_stream.py", "test_filter.py", "test_cli.py", "test_lanes_adjoint.py",
-               "test_smooth.py", "test_exact.py", "test_smooth_paths.py", "test_effects.py")
-
-
-def pytest_collection_modifyitems(items):
-    rank = {name: i for i, name in enumerate(_SLOW_FIRST)}
-    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))  # stable for the rest
