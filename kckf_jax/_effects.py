@@ -64,6 +64,8 @@ DEG = math.pi / 180.0
 EFFECTS = ("offset", "gyro_timing", "gyro_scale", "play", "curve")
 #: The leaves of ``SensorEffects``, in order (the exported step's parameter vector).
 LEAVES = ("offset", "timing", "gyro_scale", "play", "curve")
+#: The effect each leaf belongs to.
+EFFECT_OF_LEAF = dict(zip(LEAVES, EFFECTS))
 #: The joint rate at which the play's correction is 76 % of its size (tanh(1)): 5 deg/s, about
 #: 4 times the largest gyro bias of a pair (LSM6DSO zero-rate level +-1 dps each), so an
 #: unknown bias moves the correction of a still joint by at most a quarter of its size.
@@ -137,17 +139,10 @@ def curve_deviation(effects: SensorEffects, angle: Array) -> Array:
     return c[..., 0] * p2 + c[..., 1] * p3
 
 
-def joint_rates(robot: Robot, gyro: Array) -> Array:
-    """Each joint axis's rate (rad/s, ``... J``) from one row's (or every row's) gyros: the
-    difference of the gyros across the joint (``Robot.rate_pairs``, Eq. 2); NaN where one is
-    missing."""
-    plus, minus = robot.rate_pairs
-    J = robot.n_joint_axes
-    return gyro[..., plus[:J]] - gyro[..., minus[:J]]
-
-
 def angle_rates(robot: Robot, gyro: Array) -> Array:
-    """Every angle's rate (rad/s, ``... K``: joint axes, then torso axes), as ``joint_rates``."""
+    """Every angle's rate (rad/s, ``... K``: joint axes, then torso axes) from one row's (or
+    every row's) gyros: the difference of the gyros across it (``Robot.rate_pairs``, Eq. 2);
+    NaN where one is missing."""
     plus, minus = robot.rate_pairs
     return gyro[..., plus] - gyro[..., minus]
 
@@ -172,8 +167,9 @@ def corrected_readings(effects: SensorEffects, robot: Robot, hall_coeffs, gyro: 
     angle = hall_angle(v, *hall_coeffs)
     target = angle
     if play:
-        both = joint_rates(robot, jnp.where(g_valid, 0.0, jnp.nan))  # NaN: one is missing
-        rate = jnp.where(jnp.isfinite(both), joint_rates(robot, g), 0.0)
+        J = robot.n_joint_axes
+        both = angle_rates(robot, jnp.where(g_valid, 0.0, jnp.nan))[..., :J]  # NaN: one missing
+        rate = jnp.where(jnp.isfinite(both), angle_rates(robot, g)[..., :J], 0.0)
         lag = effects.play_rad * jnp.tanh(rate / PLAY_RATE_RAD_S)  # ... J
         target = target + lag[..., robot.hall_joint_axis]
     if curve:

@@ -24,12 +24,11 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
-from ._effects import EFFECTS, angle_rates
-from ._effects import LEAVES as EFFECT_LEAVES
+from ._effects import EFFECT_OF_LEAF, EFFECTS, angle_rates
 from ._gaps import GapPolicy
 from ._kernel import KALMAN_METHODS, SensorSeries, init_state, pad_series
 from ._likelihood import hall_nll
-from ._params import _LEAVES, Params, with_floors
+from ._params import ALL_LEAVES, Params, with_floors
 from ._paths import AbstractPath, Auto, Sequential, as_path, regular_step
 from ._run import choose_path, screened
 from ._session import Session, split_at_gaps
@@ -363,13 +362,11 @@ class FitConfig:
         if self.smooth and self.method not in KALMAN_METHODS:
             raise ValueError(f"FitConfig.smooth: smoothing needs a Kalman method, got "
                              f"{self.method!r}")
-        leaves = _LEAVES + tuple(f"effects.{n}" for n in EFFECT_LEAVES)
-        unknown = sorted(set(self.freeze) - set(leaves))
+        unknown = sorted(set(self.freeze) - set(ALL_LEAVES))
         if unknown:
             raise ValueError(f"FitConfig.freeze: unknown leaf {unknown[0]!r}; expected names "
-                             f"from {', '.join(leaves)}")
-        effect = {f"effects.{n}": e for n, e in zip(EFFECT_LEAVES, (
-            "offset", "gyro_timing", "gyro_scale", "play", "curve"))}
+                             f"from {', '.join(ALL_LEAVES)}")
+        effect = {f"effects.{n}": e for n, e in EFFECT_OF_LEAF.items()}
         off = [n for n in self.freeze if n in effect and effect[n] not in self.learn]
         if off:
             raise ValueError(f"FitConfig.freeze: {off[0]!r} belongs to the effect "

@@ -37,6 +37,7 @@ from ._params import Params
 from ._paths import AbstractPath, as_path
 from ._paths._lanes import LaneState, lane_innovations_scan, lane_inputs
 from ._smooth import filter_moments
+from ._stats import chi2_quantile
 
 
 def _pair_terms(params: Params, hall_v: Float[Array, "*B T M"]):
@@ -107,11 +108,9 @@ def chi2_interval(n: int, dof: int = 1) -> tuple[float, float]:
     degrees of freedom each (Wilson and Hilferty's approximation of the quantiles of
     ``chi2(n dof) / n``)."""
     k = max(int(n) * dof, 1)
-    out = []
-    for z in (-1.959963984540054, 1.959963984540054):
-        c = 2.0 / (9.0 * k)
-        out.append(k * (1.0 - c + z * math.sqrt(c)) ** 3 / max(int(n), 1))
-    return out[0], out[1]
+    lo, hi = (chi2_quantile(k, z) / max(int(n), 1) for z in (-1.959963984540054,
+                                                             1.959963984540054))
+    return lo, hi
 
 
 def consistency(terms: np.ndarray, independent: bool = True) -> dict:

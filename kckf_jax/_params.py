@@ -212,16 +212,19 @@ _LEAVES = ("log_q", "log_angle_rw", "log_bias_rw", "log_sigma_hall", "log_sigma_
            "log_p0_angle", "log_p0_bias", "log_hall_a", "log_hall_b", "log_hall_c", "log_hall_d")
 
 
+#: Every leaf a fit may learn, by name: ``_LEAVES``, then the sensor effects' (``effects.NAME``).
+ALL_LEAVES = _LEAVES + tuple(f"effects.{n}" for n in EFFECT_LEAVES)
+
+
 def leaf_names(params: Params) -> tuple[str, ...]:
     """Every learned leaf of ``params`` by name: ``_LEAVES``, then ``effects.NAME`` for the
     sensor effects' leaves where ``params`` has them (``get_leaf`` reads one)."""
-    if params.effects is None:
-        return _LEAVES
-    return _LEAVES + tuple(f"effects.{n}" for n in EFFECT_LEAVES)
+    return _LEAVES if params.effects is None else ALL_LEAVES
 
 
-def get_leaf(params: Params, name: str):
-    """The leaf ``name`` of ``leaf_names``."""
+def get_leaf(params, name: str):
+    """The leaf ``name`` of ``leaf_names`` (any module's: a dotted name reaches into a
+    sub-module, ``"effects.timing"``; the training loop's ``freeze`` reads leaves so)."""
     for part in name.split("."):
         params = getattr(params, part)
     return params

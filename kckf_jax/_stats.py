@@ -24,11 +24,17 @@ _Z95 = 1.6448536269514722  # one-sided 95 % point of the standard normal
 
 
 # ----------------------------------------------------------------------------- quantiles
+def chi2_quantile(dof: float, z: float) -> float:
+    """The quantile of the chi-square distribution with ``dof`` degrees of freedom at the
+    standard normal's ``z`` (Wilson and Hilferty's cube-root approximation)."""
+    c = 2.0 / (9.0 * dof)
+    return float(dof * (1.0 - c + z * math.sqrt(c)) ** 3)
+
+
 def chi2_quantile95(dof: float) -> float:
     """The 95 % quantile of the chi-square distribution with ``dof`` degrees of freedom
-    (Wilson and Hilferty's cube-root approximation; 31.41 for 20, 18.31 for 10)."""
-    c = 2.0 / (9.0 * dof)
-    return float(dof * (1.0 - c + _Z95 * math.sqrt(c)) ** 3)
+    (``chi2_quantile``; 31.41 for 20, 18.31 for 10)."""
+    return chi2_quantile(dof, _Z95)
 
 
 def _betacf(a: float, b: float, x: float) -> float:

@@ -29,6 +29,7 @@ import optax
 from jaxtyping import Array, Float
 
 from ._atomic import atomic_write
+from ._params import get_leaf
 
 RAD2DEG = 180.0 / math.pi
 
@@ -123,14 +124,8 @@ def filter_spec(params, freeze: Sequence[str]):
     """``eqx.partition`` spec: ``True`` for every leaf but the ``freeze``d ones."""
     spec = jax.tree_util.tree_map(lambda _: True, params)
     for name in freeze:  # a leaf's name, or a dotted path into a sub-module ("effects.timing")
-        spec = eqx.tree_at(lambda p, n=name: _leaf(p, n), spec, False)
+        spec = eqx.tree_at(lambda p, n=name: get_leaf(p, n), spec, False)
     return spec
-
-
-def _leaf(tree, name: str):
-    for part in name.split("."):
-        tree = getattr(tree, part)
-    return tree
 
 
 @dataclass
