@@ -26,6 +26,10 @@ Motions (``kind``):
   and twisting against the pelvis (assumptions of this project: gait pelvis ranges of that
   size are textbook values; the circling is a motion chosen to exercise 3D joints).
 
+Larger motion (``SimConfig.motion_range_deg``, ``kckf simulate --range-deg``): each kind's main
+motion scaled by one gain so that the session's largest |angle| (joints and the torso's linear
+sums) is the range, the frequencies kept; off (``None``) by default, and then nothing changes.
+
 Sensor effects beyond the paper's sensor models, each off by default (``SimConfig``): the
 joints' mechanical play as the Hall sensors see it, Hall curves beyond Eq. 1's shape, and a
 motion-capture clock error that ``meta.json`` does not know; their true values, and the gyros'
@@ -56,6 +60,11 @@ EFFECTS = {"play": "hall_play_deg", "curve": "hall_curve_deg", "sync": "mocap_sy
 _CURVE_RANGE_DEG = 30.0  # u = theta / 30 deg: the span of the paper's Eq. 1 fit, Fig. 3
 # Salts the device seed for the effects' own generator (another stream than ``dev``'s 7919).
 _EFFECTS_SALT = 6151
+#: The largest ``motion_range_deg``: beyond +-180 deg an angle wraps round.
+MAX_RANGE_DEG = 180.0
+#: Above this range (1.5 times the span of Eq. 1's fit) the curve effect's cubic in
+#: ``u = theta / 30 deg`` describes no sensor (it reaches 17.6 times its RMS at 45 deg).
+_CURVE_MAX_RANGE_DEG = 45.0
 
 
 @dataclass(frozen=True)
@@ -92,6 +101,9 @@ class SimConfig:
     hall_curve_deg: float = 0.0  # RMS over +-30 deg of each Hall curve's P2/P3 deviation, deg
     mocap_sync_error_s: float = 0.0  # error of the recorded mocap_time_offset_s, s (signed)
     gyro_delay_s: float = 0.0  # the gyros' delay against the Hall sensors (their filters), s
+    # The motion's largest |angle| (joint and torso angles), deg; None: each kind's own
+    # amplitudes (the paper's small angles). ``kckf simulate --range-deg`` (docs/simulator.md).
+    motion_range_deg: float | None = None
 
 
 class _Smooth:
@@ -151,6 +163,22 @@ def _check_effects(cfg: SimConfig) -> None:
                              f"{'' if signed else ' >= 0'}, got {value}")
 
 
+def _check_rate_and_range(cfg: SimConfig) -> None:
+    if not (np.isfinite(cfg.sample_rate_hz) and cfg.sample_rate_hz > 0):
+        raise ValueError(f"simulate: config.sample_rate_hz must be a positive number (Hz), got "
+                         f"{cfg.sample_rate_hz}")
+    r = cfg.motion_range_deg
+    if r is None:
+        return
+    if not (np.isfinite(r) and 0 < r <= MAX_RANGE_DEG):
+        raise ValueError(f"simulate: config.motion_range_deg must be above 0 and at most "
+                         f"{MAX_RANGE_DEG:g} deg (or None), got {r}")
+    if cfg.hall_curve_deg > 0 and r > _CURVE_MAX_RANGE_DEG:
+        raise ValueError(f"simulate: the curve effect (hall_curve_deg) is a cubic in "
+                         f"theta / 30 deg, fitted to the paper's +-30 deg; it is refused with "
+                         f"motion_range_deg above {_CURVE_MAX_RANGE_DEG:g} deg (got {r:g})")
+
+
 def _play(angle: np.ndarray, half_width: np.ndarray) -> np.ndarray:
     """The play (backlash) operator: ``p_k = clip(p_{k-1}, a_k - h, a_k + h)``, ``p_0 = a_0``,
     per column of ``angle`` (T, M) with half-widths ``half_width`` (M,), same unit."""
@@ -174,11 +202,13 @@ def _smoothstep(t: np.ndarray, t0: float, width: float) -> tuple[np.ndarray, np.
     return s * s * (3 - 2 * s), 6 * s * (1 - s) / width
 
 
-def _cyclic(rng, robot: Robot, t: np.ndarray, amp_deg=(8.0, 16.0), freq_hz=(0.7, 1.0)):
+def _cyclic(rng, robot: Robot, t: np.ndarray, amp_deg=(8.0, 16.0), freq_hz=(0.7, 1.0),
+            gain: float = 1.0):
     """Gait-like motion induced by hand: every joint axis oscillates with the shared cycle.
 
     Joint angles and rates, (T, J). The cycle's frequency and each joint's amplitude wander
-    slowly (a hand is not a motor); the chain lags a little from joint to joint.
+    slowly (a hand is not a motor); the chain lags a little from joint to joint. ``gain``
+    multiplies the amplitudes (not the posture offsets).
     """
     J = robot.n_joint_axes
     f0 = rng.uniform(*freq_hz)
@@ -190,7 +220,7 @@ def _cyclic(rng, robot: Robot, t: np.ndarray, amp_deg=(8.0, 16.0), freq_hz=(0.7,
     theta = np.zeros((t.size, J))
     rate = np.zeros((t.size, J))
     for j, (i, a) in enumerate(robot.joint_axes):
-        amp = rng.uniform(*amp_deg) * DEG
+        amp = rng.uniform(*amp_deg) * DEG * gain
         m, m_d = _Smooth(rng, 0.01, 0.05)(t)
         mod, mod_d = amp * (1 + 0.2 * m), amp * 0.2 * m_d
         off, off_d = _Smooth(rng, 0.005, 0.03)(t)
@@ -204,11 +234,12 @@ def _cyclic(rng, robot: Robot, t: np.ndarray, amp_deg=(8.0, 16.0), freq_hz=(0.7,
     return theta, rate
 
 
-def _human(rng, robot: Robot, t: np.ndarray, rom_deg: float = 30.0):
+def _human(rng, robot: Robot, t: np.ndarray, rom_deg: float = 30.0, gain: float = 1.0):
     """Upper-torso bending and extension over ``rom_deg`` (paper Sec. 4.3), shared by joints.
 
     The flexion (about x when the robot has x joints, else its first torso axis) goes from
     upright (0) to ``rom_deg`` and back with a period of 4-6 s; the other axes sway a little.
+    ``gain`` multiplies the bend (not the sway).
     """
     J = robot.n_joint_axes
     flex_axis = "x" if "x" in robot.torso_axes else robot.torso_axes[0]
@@ -227,7 +258,7 @@ def _human(rng, robot: Robot, t: np.ndarray, rom_deg: float = 30.0):
         sway, sway_d = _Smooth(rng, 0.05, 0.3)(t)
         if a == flex_axis:
             share = w[flex_joints.index(j)]
-            amp = rom_deg * DEG * share * rng.uniform(0.9, 1.1)
+            amp = rom_deg * DEG * share * rng.uniform(0.9, 1.1) * gain
             theta[:, j] = amp * flex + 0.5 * DEG * sway
             rate[:, j] = amp * flex_d + 0.5 * DEG * sway_d
         else:
@@ -236,12 +267,13 @@ def _human(rng, robot: Robot, t: np.ndarray, rom_deg: float = 30.0):
     return theta, rate, flex
 
 
-def _walking(rng, robot: Robot, t: np.ndarray):
+def _walking(rng, robot: Robot, t: np.ndarray, gain: float = 1.0):
     """The trunk circling over a walking pelvis: every joint axis about x or y moves the trunk
     round a circle (x and y in quadrature, one circle in 4-6 s, the torso angle about each
     reaching 34-50 deg, shared among the joints about that axis), every z axis twists against
     the pelvis at the stride frequency (5-10 deg). Joint angles and rates (T, J), and the
-    stride's phase and rate (the pelvis follows it)."""
+    stride's phase and rate (the pelvis follows it). ``gain`` multiplies the circling (not the
+    twist)."""
     J = robot.n_joint_axes
     stride = rng.uniform(0.8, 1.0)
     pn, pn_d = _Smooth(rng, 0.01, 0.05)(t)
@@ -250,7 +282,7 @@ def _walking(rng, robot: Robot, t: np.ndarray):
     period = rng.uniform(4.0, 6.0)
     psi_c = 2 * np.pi * t / period + 0.5 * pn  # the circle's phase
     psi_c_d = 2 * np.pi / period + 0.5 * pn_d
-    total = {a: rng.uniform(34.0, 50.0) * DEG for a in ("x", "y")}
+    total = {a: rng.uniform(34.0, 50.0) * DEG * gain for a in ("x", "y")}
     total["z"] = rng.uniform(5.0, 10.0) * DEG
     shares = {}
     for a in AXES:
@@ -286,8 +318,10 @@ def _pelvis(rng, psi, psi_d):
     return euler_body_rates(angles, rates)
 
 
-def _base_motion(rng, t: np.ndarray, kind: str, flex: np.ndarray | None):
-    """Orientation rate of the base link (worn low on the back), (T, 3) rad/s."""
+def _base_motion(rng, t: np.ndarray, kind: str, flex: np.ndarray | None,
+                 tilt_deg: float = 10.0):
+    """Orientation rate of the base link (worn low on the back), (T, 3) rad/s; ``tilt_deg``:
+    the human kind's pelvic tilt at full bend."""
     rate = np.zeros((t.size, 3))
     for ax in range(3):
         _, d = _Smooth(rng, 0.5, 2.0)(t)  # gait-like pelvis rotation, a few degrees
@@ -295,8 +329,69 @@ def _base_motion(rng, t: np.ndarray, kind: str, flex: np.ndarray | None):
         rate[:, ax] = 3.0 * DEG * d + 2.0 * DEG * slow
     if kind == "human" and flex is not None:
         # The pelvis tilts with the trunk (lumbo-pelvic rhythm): about 1/3 of the bend.
-        rate[:, 0] += np.gradient(10.0 * DEG * flex, t)
+        rate[:, 0] += np.gradient(tilt_deg * DEG * flex, t)
     return rate
+
+
+def _joint_motion(rng, robot: Robot, t: np.ndarray, kind: str, move_s: float, gain: float):
+    """The joints' angles and rates (T, J) with the still start (and the static kind's hold),
+    the human kind's bend (0..1) or None, the walking stride's phase and rate or None, and the
+    fade-in ramp. ``gain`` scales each kind's main motion (``_cyclic``, ``_human``,
+    ``_walking``); 1 is the kind's own size."""
+    n = t.size
+    flex = stride = None
+    if kind == "human":
+        theta, rate, flex = _human(rng, robot, t, gain=gain)
+    elif kind == "walking":
+        theta, rate, stride = _walking(rng, robot, t, gain=gain)
+    else:
+        theta, rate = _cyclic(rng, robot, t, gain=gain)
+    ramp, ramp_d = _smoothstep(t, 1.0, 2.0)  # still for 1 s, then the motion fades in
+    rate = ramp[:, None] * rate + ramp_d[:, None] * theta
+    theta = ramp[:, None] * theta
+    if kind == "static":
+        hold, hold_d = _smoothstep(t, move_s, 2.0)
+        th_end = theta[min(np.searchsorted(t, move_s + 2.0), n - 1)]
+        theta_hold = (1 - hold)[:, None] * theta + hold[:, None] * th_end
+        rate = (1 - hold)[:, None] * rate + hold_d[:, None] * (th_end - theta)
+        theta = theta_hold
+        flex = None
+    return theta, rate, flex, stride, ramp
+
+
+def _range_gain(rng, robot: Robot, t: np.ndarray, kind: str, move_s: float,
+                range_deg: float) -> float:
+    """The gain of ``_joint_motion`` at which the largest |angle| of the joints and of the
+    torso sums (Eq. 14) is ``range_deg``. The angles are ``gain * main + rest`` (the motion is
+    linear in its gain) and their largest magnitude is convex in it, so bisection finds the one
+    crossing. ``rng`` is left where it was (the motion is drawn again with the gain found)."""
+    state = rng.bit_generator.state
+    parts = []
+    for g in (0.0, 1.0):
+        rng.bit_generator.state = state
+        theta = _joint_motion(rng, robot, t, kind, move_s, g)[0]
+        parts.append(np.concatenate([theta, theta @ robot.torso_sum.T], axis=1))
+    rng.bit_generator.state = state
+    rest, main = parts[0], parts[1] - parts[0]
+    target = range_deg * DEG
+
+    def peak(g: float) -> float:
+        return float(np.max(np.abs(g * main + rest)))
+
+    if peak(0.0) >= target:
+        raise ValueError(f"simulate: motion_range_deg = {range_deg:g} is within what the "
+                         f"{kind} motion does besides its scaled part (up to "
+                         f"{peak(0.0) / DEG:.3g} deg of sway, offsets or twist); give more")
+    if not np.max(np.abs(main)) > 0:
+        raise ValueError(f"simulate: the {kind} motion on {robot.spec} has nothing that "
+                         "motion_range_deg scales (walking circles the trunk about x and y)")
+    lo, hi = 0.0, 1.0
+    while peak(hi) < target:
+        lo, hi = hi, 2 * hi
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if peak(mid) < target else (lo, mid)
+    return 0.5 * (lo + hi)
 
 
 def simulate(
@@ -360,6 +455,7 @@ def simulate(
     if drop_prob is not None:
         cfg = SimConfig(**{**asdict(cfg), "drop_prob": float(drop_prob)})
     _check_effects(cfg)
+    _check_rate_and_range(cfg)
     rng = np.random.default_rng(np.random.SeedSequence([seed, KINDS.index(kind), len(robot.spec)]))
     device_seed = seed if device_seed is None else device_seed
     dev = np.random.default_rng(np.random.SeedSequence([device_seed, 7919, len(robot.spec)]))
@@ -379,31 +475,29 @@ def simulate(
     # ---- time: the microcontroller samples at its nominal rate with a little jitter.
     ts = 1.0 / cfg.sample_rate_hz
     n = int(round(duration_s * cfg.sample_rate_hz))
-    t = np.arange(n) * ts + rng.uniform(-cfg.timestamp_jitter_s, cfg.timestamp_jitter_s, n)
+    if n < 2:
+        raise ValueError(f"simulate: duration_s * sample_rate_hz must give at least 2 samples, "
+                         f"got {duration_s:g} s at {cfg.sample_rate_hz:g} Hz")
+    # A jitter of half a step or more would swap samples: above 1 kHz the default 0.5 ms is
+    # held to half a step (at or below 1 kHz nothing changes).
+    jitter = min(cfg.timestamp_jitter_s, 0.5 * ts)
+    t = np.arange(n) * ts + rng.uniform(-jitter, jitter, n)
     t[0] = 0.0
     t = np.round(np.maximum.accumulate(t), 6)  # the microcontroller stamps in microseconds
+    if np.any(np.diff(t) <= 0):  # two stamps rounded onto one microsecond: one moves on by 1
+        k = np.arange(n) * 1e-6
+        t = np.round(np.maximum.accumulate(t - k) + k, 6)
 
-    # ---- joint motion (T, J): angles and rates, with a still start in the neutral pose.
-    flex = stride = None
-    if kind == "human":
-        theta, rate, flex = _human(rng, robot, t)
-    elif kind == "walking":
-        theta, rate, stride = _walking(rng, robot, t)
-    else:
-        theta, rate = _cyclic(rng, robot, t)
-    ramp, ramp_d = _smoothstep(t, 1.0, 2.0)  # still for 1 s, then the motion fades in
-    rate = ramp[:, None] * rate + ramp_d[:, None] * theta
-    theta = ramp[:, None] * theta
-    if kind == "static":
-        hold, hold_d = _smoothstep(t, move_s, 2.0)
-        th_end = theta[min(np.searchsorted(t, move_s + 2.0), n - 1)]
-        theta_hold = (1 - hold)[:, None] * theta + hold[:, None] * th_end
-        rate = (1 - hold)[:, None] * rate + hold_d[:, None] * (th_end - theta)
-        theta = theta_hold
-        flex = None
+    # ---- joint motion (T, J): angles and rates, with a still start in the neutral pose;
+    # with a range, each kind's main motion scaled so that the largest |angle| is that range.
+    gain = 1.0
+    if cfg.motion_range_deg is not None:
+        gain = _range_gain(rng, robot, t, kind, move_s, cfg.motion_range_deg)
+    theta, rate, flex, stride, ramp = _joint_motion(rng, robot, t, kind, move_s, gain)
 
     # ---- link rates (T, n+1, 3): base rate plus the rates of the joints below (Eq. 2).
-    base = _base_motion(rng, t, kind, flex)
+    # The human kind's pelvic tilt (a third of the bend) grows with the bend.
+    base = _base_motion(rng, t, kind, flex, tilt_deg=10.0 * gain)
     if kind == "walking":
         base = base + ramp[:, None] * _pelvis(rng, *stride)
     if kind == "static":
@@ -505,7 +599,8 @@ def simulate(
     }
     # An effect that is off is left out of the record, so that a session without effects has
     # the meta.json it had before they existed (apart from "effects": the gyro scales).
-    config = {k: v for k, v in asdict(cfg).items() if v or k not in EFFECTS.values()}
+    config = {k: v for k, v in asdict(cfg).items()
+              if (v or k not in EFFECTS.values()) and not (k == "motion_range_deg" and v is None)}
     effects: dict = {}
     if cfg.hall_play_deg > 0:
         effects["hall_play_deg"] = {n: float(h) for n, h in

@@ -223,3 +223,156 @@ def test_the_command_writes_exact_sessions(tmp_path):
                  "--joints", "xyz,xyz", "--duration", "3", "--quiet"]) == 0
     s = read_session(out)
     assert "exact kinematics" in s.description and s.robot.spec == "xyz,xyz"
+
+
+# --------------------------------------------------------------------------- range and rate
+def _largest_angle_deg(s, torso=True):
+    """The largest |angle| of a session's truth, deg: joints, and the torso angles too."""
+    K = s.robot.n_joint_axes
+    return float(np.nanmax(np.abs(s.mocap if torso else s.mocap[:, :K]))) / DEG
+
+
+def test_without_a_range_the_motion_is_the_kinds_own():
+    """``motion_range_deg=None`` (the default) is the simulator without the option: the same
+    arrays to the bit as the one-argument call, no record in ``meta.json``, and the kinds' small
+    angles (cyclic joints below 30 deg, the human bend about its 30 deg range)."""
+    for kind, kin in (("cyclic", "linear"), ("human", "linear"), ("walking", "exact"),
+                      ("static", "linear")):
+        a = simulate("x,y,x,y", kind, seed=11, duration_s=10.0, move_s=5.0, kinematics=kin)
+        b = simulate("x,y,x,y", kind, seed=11, duration_s=10.0, move_s=5.0, kinematics=kin,
+                     config=SimConfig(motion_range_deg=None, sample_rate_hz=100.0))
+        for f in ("t", "gyro", "hall_v", "mocap_t", "mocap"):
+            np.testing.assert_array_equal(getattr(a, f), getattr(b, f))
+        assert "motion_range_deg" not in a.extra_meta["simulation"]["config"]
+    assert _largest_angle_deg(simulate("x,y,x,y", "cyclic", seed=11, duration_s=20.0),
+                              torso=False) < 30
+    assert 25 < _largest_angle_deg(simulate("x", "human", seed=11, duration_s=20.0)) < 36
+
+
+# SHA-256 of default sessions' arrays (rounded to 1e-9, so that the digest does not hang on
+# the last bit of a platform's sin and exp), taken with the simulator before the range and rate
+# options existed (commit c1cb935): a change to the default path shows here.
+def _digest(s) -> str:
+    import hashlib
+
+    h = hashlib.sha256()
+    for a in (s.t, s.gyro, s.hall_v, s.mocap_t, s.mocap, [s.mocap_time_offset_s]):
+        h.update((np.round(np.asarray(a, dtype=np.float64), 9) + 0.0).tobytes())
+    return h.hexdigest()
+
+
+BEFORE_RANGE = {
+    ("cyclic", "linear", 100.0): "0595cae54e21ec351739454e7f2c5c84b2f52af651797689fdea6b720ce61338",
+    ("walking", "exact", 40.0): "ad192d066ff4dd4a3fd57b72f87080a6afb681c59fbe6ac038b3f77af3a2b075",
+}
+
+
+@pytest.mark.parametrize("case", sorted(BEFORE_RANGE))
+def test_default_sessions_are_the_simulator_before_the_range(case):
+    kind, kin, rate = case
+    s = simulate("x,y,z", kind, seed=7, duration_s=10.0, kinematics=kin, drop_prob=0.01,
+                 config=SimConfig(sample_rate_hz=rate))
+    assert _digest(s) == BEFORE_RANGE[case]
+
+
+@pytest.mark.parametrize("kinematics", ["linear", "exact"])
+@pytest.mark.parametrize("kind", ["cyclic", "human", "walking", "static"])
+def test_range_reaches_the_stated_angle(kind, kinematics):
+    """``motion_range_deg``: the largest |angle| of the joints and the torso sums is the range
+    (to the mocap noise); on a layout of one joint per axis each joint's angle reaches it, and
+    the exact twin has the same joint angles. The Hall voltages stay off the ADC's rails."""
+    cfg = SimConfig(motion_range_deg=140.0, mocap_noise_deg=0.0)
+    s = simulate("x,y,z", kind, seed=3, duration_s=15.0, move_s=8.0, kinematics=kinematics,
+                 config=cfg)
+    assert abs(_largest_angle_deg(s, torso=False) - 140.0) < 0.05 * 140
+    assert s.extra_meta["simulation"]["config"]["motion_range_deg"] == 140.0
+    assert SimConfig(**s.extra_meta["simulation"]["config"]) == cfg
+    assert 0.5 < np.nanmin(s.hall_v) and np.nanmax(s.hall_v) < 3.1  # no rail
+    # On a spine (two joints about x and y) the torso angle, the joints' sum, is the range.
+    sp = simulate("x,y,x,y", kind, seed=3, duration_s=15.0, move_s=8.0, config=cfg)
+    assert abs(_largest_angle_deg(sp) - 140.0) < 0.01 * 140
+    assert _largest_angle_deg(sp, torso=False) < 100
+    if kinematics == "exact":
+        lin = simulate("x,y,z", kind, seed=3, duration_s=15.0, move_s=8.0, config=cfg)
+        K = s.robot.n_joint_axes
+        np.testing.assert_array_equal(s.mocap[:, :K], lin.mocap[:, :K])
+        np.testing.assert_array_equal(s.hall_v, lin.hall_v)
+
+
+def test_range_scales_the_rates_with_the_angles():
+    """The frequencies stay: at 140 deg the human bend's joint rate reaches a few rad/s, and a
+    range twice as large makes the rates of the scaled motion about twice as large."""
+    cfg = dict(gyro_noise_density_dps_rthz=0.0, gyro_zero_rate_dps=0.0,
+               gyro_temp_coeff_dps_per_c=0.0, gyro_bias_walk_dps_rts=0.0, gyro_scale_error=0.0)
+    peak = {}
+    for r in (70.0, 140.0):
+        s = simulate("x", "human", seed=4, duration_s=20.0,
+                     config=SimConfig(motion_range_deg=r, **cfg))
+        g = s.gyro.reshape(len(s.t), 2, 3)
+        peak[r] = np.abs(g[:, 1, 0] - g[:, 0, 0]).max()  # the joint's rate (Eq. 2)
+    assert 1.0 < peak[140.0] < 5.0
+    assert 1.7 < peak[140.0] / peak[70.0] < 2.3
+
+
+def test_exact_kinematics_at_large_angles_measure_the_chains_body_rates():
+    """At 140 deg the exact gyros are still the chain's body rates (as
+    ``test_exact_kinematics_gyros_measure_the_chains_body_rates`` checks at small angles)."""
+    robot = Robot.from_spec("xyz,xyz")
+    cfg = SimConfig(**{**EXACT_CLEAN.__dict__, "motion_range_deg": 140.0})
+    s = simulate(robot, "walking", seed=3, duration_s=8.0, config=cfg, kinematics="exact")
+    theta = s.truth()[:, :robot.n_joint_axes]
+    rows = slice(350, 700)
+    Q = _orientations(robot, theta[rows])
+    dQ = np.gradient(Q, 0.01, axis=0)
+    W = np.einsum("tkji,tkjl->tkil", Q, dQ)
+    rel = np.stack([W[..., 2, 1], W[..., 0, 2], W[..., 1, 0]], axis=-1)
+    gyro = s.gyro.reshape(len(s.t), robot.n_links, 3)[rows]
+    base = np.einsum("tkji,tj->tki", Q, gyro[:, 0])
+    assert np.abs(rel).max() > 1.0  # rad/s: large rotations, not the small-angle regime
+    assert np.abs((gyro - (base + rel))[2:-2]).max() < 1e-2
+
+
+def test_bad_ranges_are_refused():
+    with pytest.raises(ValueError, match="motion_range_deg must be above 0 and at most 180"):
+        simulate("x", config=SimConfig(motion_range_deg=200.0), duration_s=5.0)
+    with pytest.raises(ValueError, match="curve effect"):
+        simulate("x", config=SimConfig(motion_range_deg=140.0, hall_curve_deg=1.0),
+                 duration_s=5.0)
+    with pytest.raises(ValueError, match="nothing that motion_range_deg scales"):
+        simulate("z", "walking", config=SimConfig(motion_range_deg=140.0), duration_s=5.0)
+    with pytest.raises(ValueError, match="besides its scaled part"):
+        simulate("x,y,z", "walking", config=SimConfig(motion_range_deg=2.0), duration_s=5.0)
+    with pytest.raises(ValueError, match="sample_rate_hz must be a positive"):
+        simulate("x", config=SimConfig(sample_rate_hz=0.0), duration_s=5.0)
+
+
+@pytest.mark.parametrize("rate", [40.0, 1000.0])
+def test_rate_sets_the_time_step(rate, tmp_path):
+    """``kckf simulate --rate``: the median step is 1 / rate, the stamps increase strictly (in
+    microseconds), the drops keep their probability, and the motion capture keeps its own
+    120 Hz and its alignment (its truth at the sensor times follows the joints' motion)."""
+    from kckf_jax.cli import main
+
+    out = tmp_path / "s"
+    assert main(["simulate", str(out), "--rate", f"{rate:g}", "--duration", "10", "--joints",
+                 "x,y", "--drop-prob", "0.02", "--range-deg", "90", "--quiet"]) == 0
+    s = read_session(out)  # the plausibility check of the step included
+    assert s.sample_rate_hz == rate and len(s.t) == int(10 * rate)
+    d = np.diff(s.t)
+    assert abs(np.median(d) - 1 / rate) < 0.02 / rate and d.min() > 0
+    np.testing.assert_array_equal(s.t, np.round(s.t, 6))
+    assert 0.01 < np.isnan(s.hall_v).mean() < 0.03
+    assert abs(np.median(np.diff(s.mocap_t)) - 1 / 120) < 1e-9
+    truth = s.truth()  # the motion capture aligned to the sensor clock
+    ok = np.isfinite(truth).all(1)
+    assert ok.mean() > 0.8 and 85 < _largest_angle_deg(s) < 95
+
+
+def test_jitter_near_the_step_keeps_the_stamps_increasing():
+    """At 1 kHz the 0.5 ms jitter is half a step: two stamps could round onto one microsecond
+    (seed 94 did, over 120 s: a ValueError before); above 1 kHz it is held to half a step."""
+    s = simulate("x,y,x,y", "cyclic", seed=94, duration_s=120.0,
+                 config=SimConfig(sample_rate_hz=1000.0))
+    assert np.diff(s.t).min() > 0
+    s = simulate("x", "cyclic", seed=1, duration_s=2.0, config=SimConfig(sample_rate_hz=4000.0))
+    assert np.diff(s.t).min() > 0 and abs(np.median(np.diff(s.t)) - 2.5e-4) < 1e-5
