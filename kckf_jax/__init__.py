@@ -41,7 +41,10 @@ The public API (everything else lives in private modules; docs/architecture.md m
   sender; ``open_source``, ``open_sink``, ``run_stream``; the Lab Streaming Layer's
   ``LslSource`` and ``LslSink``, and ``lsl_loopback_config`` to keep LSL on this machine);
 * faulty readings (what the step does not use, and why): ``FAULT_KINDS``,
-  ``fault_stretches`` (``Estimate.faults`` by column, kind and time);
+  ``fault_stretches`` (``Estimate.faults`` by column, kind and time); ``FaultPolicy`` (what
+  the health monitor's findings do: ``isolate``, ``report`` or ``off``; ``FAULT_POLICIES``,
+  ``Params.with_faults``) and ``model_mismatch`` (the paper's gyro pairs that the data show
+  do not read the same rate, following the pose: the linear model's limit, not a fault);
 * analysis: ``observability_ranks``;
 * the one process-wide setting it offers, made only when asked (XLA's CPU while loops
   compiled as one kernel each; importing kckf_jax changes nothing in the process):
@@ -61,6 +64,8 @@ from ._diagnostics import diagnostics as diagnostics
 from ._effects import EFFECTS as EFFECTS
 from ._effects import SensorEffects as SensorEffects
 from ._export import export_step as export_step
+from ._fault_policy import FAULT_POLICIES as FAULT_POLICIES
+from ._fault_policy import FaultPolicy as FaultPolicy
 from ._fit import Batch as Batch
 from ._fit import FitConfig as FitConfig
 from ._fit import fit as fit
@@ -84,6 +89,7 @@ from ._likelihood import hall_nll as hall_nll
 from ._limits import SensorLimits as SensorLimits
 from ._metrics import fused_hall_error as fused_hall_error
 from ._metrics import rmse_table as rmse_table
+from ._mismatch import model_mismatch as model_mismatch
 from ._observability import observability_ranks as observability_ranks
 from ._params import Params as Params
 from ._params import ParamsFileError as ParamsFileError

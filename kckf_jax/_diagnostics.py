@@ -371,11 +371,13 @@ def describe(method: str, doc: Mapping) -> list[str]:
 
 
 def session_innovations(sessions: Sequence[Session], method: str,
-                        params: Params | None = None, gaps: GapPolicy = GapPolicy()) -> list:
+                        params: Params | None = None, gaps: GapPolicy = GapPolicy(),
+                        faults=None) -> list:
     """Each session's fused Hall innovations ``(nu, var, valid)`` (NumPy float64, ``T Nb m``)
-    under ``method``, restarted where ``gaps`` restarts the filter."""
+    under ``method``, restarted where ``gaps`` restarts the filter (``faults``: the fault
+    policy, as ``filter_sessions``')."""
     out = []
-    for s, p in zip(sessions, session_params(sessions, params)):
+    for s, p in zip(sessions, session_params(sessions, params, faults=faults)):
         parts = [[np.asarray(x, np.float64) for x in
                   _innovations(p, session_series(piece, p.log_q.dtype), method)]
                  for piece in split_at_gaps(s, gaps)]

@@ -25,6 +25,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float
 
 from ._effects import EFFECT_OF_LEAF, EFFECTS, angle_rates
+from ._fault_policy import FaultPolicy
 from ._gaps import GapPolicy
 from ._kernel import KALMAN_METHODS, SensorSeries, init_state, pad_series
 from ._likelihood import hall_nll
@@ -334,6 +335,8 @@ class FitConfig:
             the filtered ones; the validation loss is smoothed too.
         learn: the sensor effects to learn with the rest (``EFFECTS``: ``"offset"``,
             ``"gyro_scale"``, ``"play"``, ``"curve"``; docs/fitting.md); none by default.
+        faults: the fault policy the training and validation readings are judged by
+            (``FaultPolicy``'s names: ``"isolate"``, the default; ``"report"``; ``"off"``).
     """
 
     steps: int = 200
@@ -353,8 +356,10 @@ class FitConfig:
     nll_weight: float = NLL_WEIGHT
     smooth: bool = False
     learn: tuple[str, ...] = ()
+    faults: str = "isolate"
 
     def __post_init__(self):
+        FaultPolicy(self.faults)  # a name it knows
         unknown = sorted(set(self.learn) - set(EFFECTS))
         if unknown:
             raise ValueError(f"FitConfig.learn: unknown effect {unknown[0]!r}; expected some "
@@ -487,6 +492,7 @@ def fit(
                          f"sessions have {sessions[0].robot.spec!r}")
     if config.learn and (params.effects is None or set(params.effects.on) != set(config.learn)):
         params = params.with_effects(config.learn)  # a starting file's values are kept
+    params = params.with_faults(config.faults)
     # The readings are judged once, with the starting parameters (``_run.screened``: every
     # reading alone and each sensor over time), not in every step's loss: faulty readings do
     # not enter the fit, and the health monitor's scan is not paid per step.

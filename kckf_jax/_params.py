@@ -19,6 +19,7 @@ from jaxtyping import Array, Float
 
 from ._effects import EFFECTS, SensorEffects
 from ._effects import LEAVES as EFFECT_LEAVES
+from ._fault_policy import FaultPolicy
 from ._hall import DEG, PAPER_HALL_DEG
 from ._limits import SensorLimits
 from ._robot import Robot
@@ -63,6 +64,10 @@ class Params(eqx.Module):
     Static: the ``robot``, each sensor's ``hall_sign``, the ``hall_noise`` model and the
     readings' physical ``limits`` (``SensorLimits``: beyond them a reading is missing).
 
+    ``faults``: what the health monitor's findings do (``FaultPolicy``: ``isolate``, the
+    default; ``report``; ``off``), static: a setting of the run, not saved with the
+    parameters (``with_faults``).
+
     ``effects``: the learned sensor effects (``SensorEffects``: gyro scale factors, the
     joints' play, Hall curves beyond Eq. 1, a clock offset against motion capture), or
     ``None`` (the paper's sensor models; the default). ``with_effects`` switches them on.
@@ -89,6 +94,7 @@ class Params(eqx.Module):
     hall_noise: str = eqx.field(static=True, default="angle")
     limits: SensorLimits = eqx.field(static=True, default=SensorLimits())
     effects: SensorEffects | None = None
+    faults: FaultPolicy = eqx.field(static=True, default=FaultPolicy())
 
     def __check_init__(self):
         K, M = self.robot.n_angles, self.robot.n_hall
@@ -194,6 +200,14 @@ class Params(eqx.Module):
         if self.effects is None:
             return out
         return dataclasses.replace(out, effects=self.effects.astype(dtype))
+
+    def with_faults(self, policy: FaultPolicy | str | None) -> Params:
+        """These parameters with the fault policy ``policy`` (``FaultPolicy`` or its name;
+        ``None``: as they are). The policy is a setting of the run, not a fitted value: it is
+        not saved with the parameters."""
+        if policy is None:
+            return self
+        return dataclasses.replace(self, faults=FaultPolicy.of(policy))
 
     def with_effects(self, on=EFFECTS, effects: SensorEffects | None = None) -> Params:
         """These parameters with the sensor effects ``on`` (names of ``EFFECTS``) switched on:

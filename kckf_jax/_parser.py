@@ -10,6 +10,7 @@ from collections.abc import Callable, Mapping
 def _data_options(p: argparse.ArgumentParser, plausibility: bool = True) -> None:
     """The options every command on recorded or live data shares: the gap policy and the
     plausibility check."""
+    from ._fault_policy import FAULT_POLICIES
     from ._gaps import GapPolicy
 
     d = GapPolicy()
@@ -19,6 +20,10 @@ def _data_options(p: argparse.ArgumentParser, plausibility: bool = True) -> None
                    help="predict across a gap (default) or restart the filter after it")
     p.add_argument("--max-predict", type=float, default=None, metavar="SEC",
                    help="a longer gap restarts even with --on-gap predict (default 1 s)")
+    p.add_argument("--faults", choices=FAULT_POLICIES, default="isolate",
+                   help="what a sensor the health monitor judges faulty does: isolate "
+                        "(default: not used until it behaves again), report (named, still "
+                        "used) or off (no monitor; docs/faults.md)")
     if plausibility:
         p.add_argument("--accept-implausible", action="store_true",
                        help="read a session whose time step disagrees with sample_rate_hz or "
@@ -67,6 +72,12 @@ def build_parser(commands: Mapping[str, Callable], demo_steps: int) -> argparse.
                         "Eq. 1), sync=SEC (a motion-capture clock error meta.json does not "
                         "know), delay=SEC (the gyros' delay against the Hall sensors); "
                         "docs/simulator.md, 'Sensor effects'")
+    s.add_argument("--range-deg", type=float, default=None, metavar="DEG",
+                   help="scale the motion so that its largest |angle| (joints and torso) is "
+                        "DEG, up to 180, e.g. 140 for arm-like joints (default: each kind's own "
+                        "small angles); docs/simulator.md, 'Range and rate'")
+    s.add_argument("--rate", type=float, default=None, metavar="HZ",
+                   help="sensor sample rate, Hz (default 100; MEMS units run at 40-1000)")
     s.set_defaults(func=commands['cmd_simulate'])
 
     f = sub.add_parser("filter", parents=[common], help="run one filter over a session")

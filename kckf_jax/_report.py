@@ -19,6 +19,7 @@ from ._gaps import describe as describe_gaps
 from ._kernel import KALMAN_METHODS
 from ._likelihood import consistency
 from ._metrics import rmse_table
+from ._mismatch import describe_mismatch, model_mismatch
 from ._params import Params
 from ._paths import AbstractPath
 from ._run import filter_sessions, series_faults, session_params, session_series
@@ -34,7 +35,8 @@ TABLE_LABELS = {"gyro": "Gyro", "hall_l": "Hall l", "hall_r": "Hall r", "kf": "S
 
 def data_faults(sessions: Sequence[Session], params: Params | None = None,
                 gaps: GapPolicy = GapPolicy(), method: str = "kckf",
-                codes: Sequence[np.ndarray] | None = None) -> tuple[dict, list[str]]:
+                codes: Sequence[np.ndarray] | None = None, faults=None
+                ) -> tuple[dict, list[str]]:
     """What is wrong with the data, before any filter runs: per session, the readings the
     filter does not use because they cannot be measurements (``_screen``: outside the
     physical range, railed, unreachable, saturated) or that stopped following their joint
@@ -48,25 +50,33 @@ def data_faults(sessions: Sequence[Session], params: Params | None = None,
     people per finding. ``method``: whose model of the gyros judges them (``kckf3d``: no two
     gyros measure the same rate, ``_screen.stand_ins``). ``codes``: each session's fault
     codes where a filter of ``method`` already screened it (``Estimate.faults``), so the
-    readings are not judged twice."""
-    faults, out_of_range, gap_doc, setup, lines = {}, {}, {}, {}, []
-    for i, (s, p) in enumerate(zip(sessions, session_params(sessions, params))):
+    readings are not judged twice. ``faults``: the fault policy (``FaultPolicy`` or its name;
+    default ``params``' own, else ``isolate``): under ``report`` the monitor's findings are
+    named as still used."""
+    found_faults, out_of_range, gap_doc, setup, lines = {}, {}, {}, {}, []
+    mismatch = {}
+    plist = session_params(sessions, params, faults=faults)
+    for i, (s, p) in enumerate(zip(sessions, plist)):
         key = s.path or "session"
         names = s.robot.gyro_names + s.robot.hall_names
         if codes is not None:
             codes_i = np.asarray(codes[i])
         else:
             codes_i = np.asarray(series_faults(p, session_series(s, p.log_q.dtype), method))
-        faults[key] = fault_stretches(s.t, codes_i, names)
+        found_faults[key] = fault_stretches(s.t, codes_i, names)
         cols = {}
         for j in np.flatnonzero((codes_i == OUT_OF_RANGE).any(axis=0)):
             rows = np.flatnonzero(codes_i[:, j] == OUT_OF_RANGE)
             cols[names[j]] = {"count": int(rows.size), "first_t_s": float(s.t[rows[0]])}
         if cols:
             out_of_range[key] = cols
-        line = describe_faults(key, faults[key])
+        line = describe_faults(key, found_faults[key], p.faults)
         if line:
             lines.append(line)
+        pairs = model_mismatch(s, method, p)
+        if pairs:
+            mismatch[key] = pairs
+            lines.append(describe_mismatch(key, pairs))
         found = setup_check(s, p, exact=method == "kckf3d")
         if found:
             setup[key] = [dataclasses.asdict(f) for f in found]
@@ -79,8 +89,9 @@ def data_faults(sessions: Sequence[Session], params: Params | None = None,
         if found:
             gap_doc[key] = [g.to_json() for g in found]
             lines.append(describe_gaps(key, found))
-    return {"faults": faults, "setup": setup, "out_of_range": out_of_range,
-            "gaps": gap_doc}, lines
+    return {"faults": found_faults, "setup": setup, "out_of_range": out_of_range,
+            "gaps": gap_doc, "model_mismatch": mismatch, "fault_policy": str(plist[0].faults)
+            }, lines
 
 
 def estimate_faults(sessions: Sequence[Session], method: str, estimates) -> list[str]:
@@ -141,7 +152,7 @@ def clock_corrected(sessions: Sequence[Session], params: Params | None) -> list[
 def evaluate_sessions(sessions: Sequence[Session], methods: Sequence[str],
                       params: Params | None = None, burn_in_s: float = 0.0,
                       gaps: GapPolicy = GapPolicy(), smooth: bool = False,
-                      path: str | AbstractPath = "auto"):
+                      path: str | AbstractPath = "auto", faults=None):
     """Every method on ``sessions``: the ``kckf evaluate --json`` document and the estimated
     angles ``{method: [(T, K) per session]}``.
 
@@ -174,21 +185,22 @@ def evaluate_sessions(sessions: Sequence[Session], methods: Sequence[str],
     # another thread while the filters run (XLA computes without holding the interpreter: on
     # two cores an hour's 0.9 s of both takes 0.5 s).
     pool = concurrent.futures.ThreadPoolExecutor(1)
-    pending = {m: pool.submit(session_innovations, sessions, m, params, gaps)
+    pending = {m: pool.submit(session_innovations, sessions, m, params, gaps, faults)
                for m in methods if m in KALMAN_METHODS}
     pool.shutdown(wait=False)
     judge = "kckf3d" if any(m == "kckf3d" for m in methods) else "kckf"
     ests = {}
     if judge in methods:  # its own screening is the data's: the readings judged once
         ests[judge] = filter_sessions(sessions, judge, params, gaps=gaps, smooth=smooth,
-                                      path=path)
-    faults, warnings = data_faults(sessions, params, gaps, judge,
-                                   [e.faults for e in ests[judge]] if ests else None)
+                                      path=path, faults=faults)
+    found, warnings = data_faults(sessions, params, gaps, judge,
+                                  [e.faults for e in ests[judge]] if ests else None, faults)
     out, angles, nis_rows = {}, {}, {}
     for m in methods:
         kalman = m in KALMAN_METHODS
         est = ests.get(m) or filter_sessions(sessions, m, params, gaps=gaps,
-                                             smooth=smooth and kalman, path=path)
+                                             smooth=smooth and kalman, path=path,
+                                             faults=faults)
         angles[m] = [e.angles for e in est]
         out[m] = rmse_table(sessions, angles[m], burn_in_s)
         out[m]["path"] = "+".join(dict.fromkeys(e.path for e in est))
@@ -208,7 +220,7 @@ def evaluate_sessions(sessions: Sequence[Session], methods: Sequence[str],
             text = ", ".join(f"{n} {a} of {k}" for n, (a, k) in list(short.items())[:4])
             warnings.append(f"{m}: RMSE over fewer steps than have truth (no estimate at the "
                             f"others): {text}")
-    doc = {"methods": out, "sessions": [s.path for s in sessions], **faults,
+    doc = {"methods": out, "sessions": [s.path for s in sessions], **found,
            "warnings": warnings, "_nis_rows": nis_rows}
     return doc, angles
 

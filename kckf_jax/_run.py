@@ -17,6 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
+from ._fault_policy import FaultPolicy
 from ._gaps import GapPolicy
 from ._health import screened_series
 from ._kernel import (
@@ -180,10 +181,16 @@ def common_robot(sessions: Sequence[Session]):
 
 
 def session_params(sessions: Sequence[Session], params: Params | None = None,
-                   dtype=None) -> list[Params]:
+                   dtype=None, faults: FaultPolicy | str | None = None) -> list[Params]:
     """One parameter set per session: ``params`` if given, else the paper defaults with the
     session's own Hall calibration (``meta.json``'s ``hall_models``); either way with the
-    physical limits a session states (``Session.limits``), which describe its hardware."""
+    physical limits a session states (``Session.limits``), which describe its hardware, and
+    the fault policy ``faults`` where given (``Params.with_faults``)."""
+    return [p.with_faults(faults) for p in _session_params(sessions, params, dtype)]
+
+
+def _session_params(sessions: Sequence[Session], params: Params | None, dtype
+                    ) -> list[Params]:
     robot = common_robot(sessions)
     if params is not None:
         if params.robot != robot:
@@ -210,7 +217,7 @@ def same_params(a: Params, b: Params) -> bool:
 def filter_sessions(
     sessions: Sequence[Session], method: str = "kckf", params: Params | None = None,
     dtype=None, path: str | AbstractPath = "auto", gaps: GapPolicy = GapPolicy(),
-    smooth: bool = False,
+    smooth: bool = False, faults: FaultPolicy | str | None = None,
 ) -> list[Estimate]:
     """Run ``method`` over every session; one ``Estimate`` per session, cut back to the
     session's own length, as NumPy arrays, its ``path`` naming the path that ran.
@@ -221,9 +228,11 @@ def filter_sessions(
     the sensor rows gets ``gaps``' policy: predicted across, or (``on_gap="restart"``, or
     longer than ``max_predict_s``) the filter starts again after it, the stretches then being
     trials of the batch (``split_at_gaps``). ``smooth``: the fixed-interval (RTS) smoothed
-    estimates instead (``smooth_batch``; the Kalman methods), ``path`` ``"smoothed"``."""
+    estimates instead (``smooth_batch``; the Kalman methods), ``path`` ``"smoothed"``.
+    ``faults``: the fault policy (``FaultPolicy`` or its name; default: ``params``' own, else
+    ``isolate``)."""
     check_method(method)
-    plist = session_params(sessions, params, dtype)
+    plist = session_params(sessions, params, dtype, faults)
     pieces = [(i, piece) for i, s in enumerate(sessions) for piece in split_at_gaps(s, gaps)]
     groups: list[tuple[Params, list[int]]] = []
     for j, (i, _) in enumerate(pieces):

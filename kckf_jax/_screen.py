@@ -146,9 +146,28 @@ def fault_stretches(t, codes, names, join_s: float = 1.0) -> list[dict]:
     return out
 
 
-def describe_faults(name: str, stretches: list[dict], limit: int = 6) -> str | None:
+#: The kinds the plausibility screen decides row by row (not used under every fault policy).
+SCREEN_KINDS = FAULT_KINDS[:4]
+
+
+def describe_faults(name: str, stretches: list[dict], policy=None,
+                    limit: int = 6) -> str | None:
     """One line for people about a recording's faulty readings (``fault_stretches``), by
-    column and kind, or None when there are none."""
+    column and kind, or None when there are none. ``policy``: the fault policy they were
+    found under (``FaultPolicy``; ``None``: ``isolate``): under ``report`` the health
+    monitor's findings were still used, and the line says so."""
+    if policy is not None and policy.monitors and not policy.isolates:
+        kept = [f for f in stretches if f["kind"] not in SCREEN_KINDS]
+        out = [f for f in stretches if f["kind"] in SCREEN_KINDS]
+        lines = [x for x in (describe_faults(name, out, None, limit),
+                             _describe(name, kept, limit, "reading(s) judged faulty, still "
+                                       "used (--faults report; isolate would leave them out)"))
+                 if x]
+        return " | ".join(lines) or None
+    return _describe(name, stretches, limit, "faulty reading(s) not used")
+
+
+def _describe(name: str, stretches: list[dict], limit: int, what: str) -> str | None:
     if not stretches:
         return None
     groups: dict[tuple[str, str], list[dict]] = {}
@@ -163,5 +182,4 @@ def describe_faults(name: str, stretches: list[dict], limit: int = 6) -> str | N
         parts.append(f"{column} {kind} x{n} at {where}")
     more = f" and {len(groups) - limit} more" if len(groups) > limit else ""
     total = sum(f["count"] for f in stretches)
-    return (f"{name}: {total} faulty reading(s) not used: " + ", ".join(parts) + more
-            + " (docs/faults.md)")
+    return (f"{name}: {total} {what}: " + ", ".join(parts) + more + " (docs/faults.md)")

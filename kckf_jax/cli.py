@@ -68,6 +68,10 @@ def cmd_simulate(args) -> int:
     robot = Robot.from_spec(args.joints)
     faults = [Fault.parse(spec) for spec in args.fault]  # a bad spec: one line, exit 2
     effects = parse_effects(args.effect)  # likewise
+    if args.rate is not None:
+        effects["sample_rate_hz"] = args.rate  # a bad rate: simulate's one-line ValueError
+    if args.range_deg is not None:
+        effects["motion_range_deg"] = args.range_deg  # likewise
     session = simulate(robot, args.kind, seed=args.seed, duration_s=args.duration,
                        drop_prob=args.drop_prob, move_s=args.move,
                        device_seed=args.device_seed, faults=faults,
@@ -75,6 +79,8 @@ def cmd_simulate(args) -> int:
     write_session(session, args.out)
     _say(args, f"wrote {args.out}: {session.n_steps} sensor rows, {len(session.mocap_t)} mocap "
                f"frames, joints {robot.spec}"
+               + (f", {args.rate:g} Hz" if args.rate is not None else "")
+               + (f", range {args.range_deg:g} deg" if args.range_deg is not None else "")
                + (f", faults: {' '.join(map(str, faults))}" if faults else "")
                + (f", effects: {' '.join(args.effect)}" if args.effect else ""))
     return 0
@@ -105,8 +111,9 @@ def cmd_filter(args) -> int:
     (session,) = _read_sessions([args.session], args=args)
     params = _load_params(args, [session])
     (est,) = filter_sessions([session], method, params, gaps=_gaps(args),
-                             smooth=args.smooth, path=_one_shot())
-    _warn(args, data_faults([session], params, _gaps(args), method, [est.faults])[1])
+                             smooth=args.smooth, path=_one_shot(), faults=args.faults)
+    _warn(args, data_faults([session], params, _gaps(args), method, [est.faults],
+                            args.faults)[1])
     _warn(args, estimate_faults([session], method, [est]))
     write_estimates(args.output, session, est)
     _say(args, f"wrote {args.output}: {session.n_steps} rows of {method} estimates "
@@ -124,7 +131,7 @@ def cmd_evaluate(args) -> int:
     from ._report import evaluate_sessions, format_table
 
     doc, angles = evaluate_sessions(sessions, methods, params, args.burn_in, _gaps(args),
-                                    smooth=args.smooth, path=_one_shot())
+                                    smooth=args.smooth, path=_one_shot(), faults=args.faults)
     _warn(args, doc["warnings"])
     if args.plot:
         from ._report import session_name
@@ -210,12 +217,13 @@ def cmd_fit(args) -> int:
     val = _read_sessions(args.val or [], require_mocap=mocap, args=args)
     common_robot(sessions + val)
     method = _check_methods([args.method])[0]
-    _warn(args, data_faults(sessions + val, None, _gaps(args), method)[1])
+    _warn(args, data_faults(sessions + val, None, _gaps(args), method,
+                            faults=args.faults)[1])
     config = FitConfig(steps=args.steps, learning_rate=args.lr, hall_noise=args.noise,
                        method=method,
                        freeze=tuple(args.freeze or ()), burn_in_s=args.burn_in,
                        batch_size=args.batch_size, seed=args.seed, loss=args.loss,
-                       smooth=args.smooth, learn=parse_learn(args.learn),
+                       smooth=args.smooth, learn=parse_learn(args.learn), faults=args.faults,
                        **({} if args.nll_weight is None else {"nll_weight": args.nll_weight}))
     init = None
     if args.init:
@@ -278,6 +286,7 @@ def cmd_stream(args) -> int:
                          "a replay://SESSION source")
     if limits is not None:  # the recording's own statement about its hardware
         params = dataclasses.replace(params, limits=limits)
+    params = params.with_faults(args.faults)
     gaps = _gaps(args)
     sf = st.StreamingFilter(params, method, gap_s=gaps.gap_s, on_gap=gaps.on_gap,
                             max_predict_s=gaps.max_predict_s)
@@ -328,6 +337,7 @@ def cmd_export(args) -> int:
                          "give --params FILE (fitted) or --meta meta.json (paper defaults)")
     if limits is not None:
         params = dataclasses.replace(params, limits=limits)
+    params = params.with_faults(args.faults)
     method = _check_methods([args.method])[0]
     n = export_step(params, args.output, method=method, baked=not args.pass_params,
                     gaps=_gaps(args))

@@ -273,7 +273,12 @@ def usable_readings(joints, t, gyro, hall_v, params):
       over the joint axes whose rate reads it, of how far the mean residual of the joint's
       used Hall sensors, averaged over CM_FAST_S, is from its average over CM_SLOW_S, as of
       the row before) is at least BIAS_EVIDENCE_RAD and twice its stand-in's, and whose
-      stand-in was not flagged on the row before, has a bias step: not used until the
+      stand-in was not flagged on the row before, has a bias step if, as of the row before,
+      the pair had been compared for PAIR_SLOW_S (summed time steps with both readings) and
+      the move exceeds SPREAD_FACTOR times the pair's spread (the RMS of the move: the mean
+      of its square over the rows the pair was compared, weighting each by dt / min(
+      PAIR_SPREAD_S, the compared time so far including it), updated while neither is
+      flagged): not used until the
       difference is back within half of BIAS_STEP_RAD_S for READMIT_S;
     * a gyro column a rate uses without a reading for more than HOLD_S (summed time steps)
       takes its first stand-in's (``_stand_in_order``); the rates below hold a column's
@@ -284,7 +289,11 @@ def usable_readings(joints, t, gyro, hall_v, params):
     * every Hall sensor's residual against the reference changes from one reading to its
       next by (Hall angle change) - dt * (joint rate); squared, divided by 2 (slope sigma_v)^2
       + (MOTION_FRACTION |dt rate| + MOTION_FLOOR_RAD)^2, averaged with weight
-      min(1, dt / ROUGH_TAU_S), it is the roughness; above ROUGH_HIGH the sensor is isolated;
+      min(1, dt / ROUGH_TAU_S), it is the roughness; above ROUGH_HIGH the sensor is isolated,
+      if its joint's pair roughness is above ROUGH_HIGH too or its partner (the other sensor
+      of the joint axis) had no reading or was isolated on the row before. The pair
+      roughness: where both sensors' residual changes are judged, the change of their
+      difference squared over the sum of the two sensors' divisors, averaged alike;
     * a sensor whose voltage is unchanged for STUCK_S while the joint moved STUCK_MOVE_RAD is
       isolated;
     * an isolated sensor is used again once calm (roughness below ROUGH_LOW, not stuck, read)
@@ -308,6 +317,8 @@ def usable_readings(joints, t, gyro, hall_v, params):
     mate = {c: (mates[0] if mates else -1) for c, mates in order.items()}
     d_fast, d_slow = np.full(G, np.nan), np.full(G, np.nan)
     bad, bad_calm = np.zeros(G, bool), np.zeros(G)
+    spread, paired = np.zeros(G), np.zeros(G)
+    pair_rough = np.zeros(J)
     cm_fast, cm_slow = np.full(J, np.nan), np.full(J, np.nan)
     uses = {c: [j for j in range(J) if c in (L["rate_plus"][j], L["rate_minus"][j])]
             for c in range(G)}
@@ -347,7 +358,14 @@ def usable_readings(joints, t, gyro, hall_v, params):
                     d_slow[c] = d if np.isnan(d_slow[c]) else d_slow[c] + f * (d - d_slow[c])
             dev = abs(d_fast[c] - d_slow[c])
             stepped = (dev > H["BIAS_STEP_RAD_S"] and evid[c] >= H["BIAS_EVIDENCE_RAD"]
-                       and evid[c] >= 2 * evid[m] and not was[m])
+                       and evid[c] >= 2 * evid[m] and not was[m]
+                       and dev > H["SPREAD_FACTOR"] * np.sqrt(spread[c])
+                       and paired[c] >= H["PAIR_SLOW_S"])
+            if np.isfinite(d):
+                paired[c] += dt[k]
+                if not (was[c] or was[m]):
+                    f = dt[k] / max(dt[k], min(H["PAIR_SPREAD_S"], paired[c]), 1e-9)
+                    spread[c] += f * ((0.0 if np.isnan(dev) else dev) ** 2 - spread[c])
             bad_calm[c] = bad_calm[c] + dt[k] if was[c] and dev < 0.5 * H["BIAS_STEP_RAD_S"] \
                 else 0.0
             bad[c] = (was[c] and bad_calm[c] < H["READMIT_S"]) or stepped
@@ -370,6 +388,27 @@ def usable_readings(joints, t, gyro, hall_v, params):
                 ref[j] += dt[k] * rate[j]
         angle = np.full(M, np.nan)
         use = np.zeros(M, bool)
+        de, div = np.full(M, np.nan), np.full(M, np.nan)  # judged residual changes
+        iso_before = iso.copy()
+        for m in range(M):
+            j = L["sensor_joint_axis"][m]
+            V = hall_v[k, m]
+            if not np.isfinite(V):
+                continue
+            angle[m] = hall_angle(V, params, m)
+            e = angle[m] - ref[j]
+            if np.isfinite(last_e[m]) and not fresh[j]:
+                sv = hall_slope(V, params, m) * float(np.asarray(params["sigma_hall_v"])[m])
+                move = abs(dt[k] * rate[j])
+                div[m] = 2 * sv**2 + (H["MOTION_FRACTION"] * move + H["MOTION_FLOOR_RAD"])**2
+                de[m] = e - last_e[m]
+        for j in range(J):
+            a_, b_ = 2 * j, 2 * j + 1
+            if np.isfinite(de[a_]) and np.isfinite(de[b_]):
+                zp = (de[a_] - de[b_]) ** 2 / (div[a_] + div[b_])
+                pair_rough[j] += min(1.0, dt[k] / H["ROUGH_TAU_S"]) * (zp - pair_rough[j])
+            elif fresh[j]:
+                pair_rough[j] = 0.0
         for m in range(M):
             j = L["sensor_joint_axis"][m]
             V = hall_v[k, m]
@@ -379,12 +418,8 @@ def usable_readings(joints, t, gyro, hall_v, params):
                     rough[m], last_e[m] = 0.0, np.nan
                 still[m], moved[m], calm[m], last_v[m] = 0.0, 0.0, 0.0, np.nan
                 continue
-            angle[m] = hall_angle(V, params, m)
-            e = angle[m] - ref[j]
-            if np.isfinite(last_e[m]) and not fresh[j]:
-                sv = hall_slope(V, params, m) * float(np.asarray(params["sigma_hall_v"])[m])
-                expect = 2 * sv**2 + (H["MOTION_FRACTION"] * move + H["MOTION_FLOOR_RAD"])**2
-                z = (e - last_e[m]) ** 2 / expect
+            if np.isfinite(de[m]):
+                z = de[m] ** 2 / div[m]
                 rough[m] += min(1.0, dt[k] / H["ROUGH_TAU_S"]) * (z - rough[m])
             elif fresh[j]:
                 rough[m] = 0.0
@@ -395,7 +430,10 @@ def usable_readings(joints, t, gyro, hall_v, params):
                 still[m], moved[m] = 0.0, 0.0
             stuck = (V == last_v[m]) and still[m] >= H["STUCK_S"] and \
                 moved[m] >= H["STUCK_MOVE_RAD"]
-            noisy = rough[m] > H["ROUGH_HIGH"]
+            partner = m ^ 1
+            partner_out = not np.isfinite(hall_v[k, partner]) or iso_before[partner]
+            noisy = rough[m] > H["ROUGH_HIGH"] and (pair_rough[j] > H["ROUGH_HIGH"]
+                                                    or partner_out)
             if iso[m] and not noisy and not stuck and rough[m] < H["ROUGH_LOW"]:
                 calm[m] += dt[k]
             else:

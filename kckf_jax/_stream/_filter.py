@@ -386,11 +386,16 @@ def stream_step_fn(params: Params, method: str, health: bool = False):
         if health:
             state, h = state
             used = screen(p, inputs.gyro, inputs.hall_v)
-            h, gyro, hall_v, g_code, h_code = health_step(p, h, inputs.dt, used.gyro,
-                                                          used.hall_v, exact)
+            gyro, hall_v = used.gyro, used.hall_v
+            codes = jnp.concatenate([used.gyro_code, used.hall_code])
+            if p.faults.monitors:  # as the batch filter's ``_health.screened_series``
+                h, g_mon, v_mon, g_code, h_code = health_step(p, h, inputs.dt, used.gyro,
+                                                              used.hall_v, exact)
+                codes = jnp.concatenate([jnp.maximum(used.gyro_code, g_code),
+                                         jnp.maximum(used.hall_code, h_code)])
+                if p.faults.isolates:  # ``report``: named, every screened reading used
+                    gyro, hall_v = g_mon, v_mon
             inputs = SensorSeries(inputs.dt, gyro, hall_v)
-            codes = jnp.concatenate([jnp.maximum(used.gyro_code, g_code),
-                                     jnp.maximum(used.hall_code, h_code)])
         new, est = step(p, state, inputs, method)  # a non-finite update keeps the state
         ok = ~est.skipped
         out = [est.angles, est.angle_std, ok[None].astype(x.dtype)]
