@@ -279,7 +279,8 @@ def usable_readings(joints, t, gyro, hall_v, params):
       of its square over the rows the pair was compared, weighting each by dt / min(
       PAIR_SPREAD_S, the compared time so far including it), updated while neither is
       flagged): not used until the
-      difference is back within half of BIAS_STEP_RAD_S for READMIT_S;
+      difference is back within half of the larger of BIAS_STEP_RAD_S and SPREAD_FACTOR
+      times the spread (as of this row) for READMIT_S;
     * a gyro column a rate uses without a reading for more than HOLD_S (summed time steps)
       takes its first stand-in's (``_stand_in_order``); the rates below hold a column's
       last value;
@@ -366,8 +367,8 @@ def usable_readings(joints, t, gyro, hall_v, params):
                 if not (was[c] or was[m]):
                     f = dt[k] / max(dt[k], min(H["PAIR_SPREAD_S"], paired[c]), 1e-9)
                     spread[c] += f * ((0.0 if np.isnan(dev) else dev) ** 2 - spread[c])
-            bad_calm[c] = bad_calm[c] + dt[k] if was[c] and dev < 0.5 * H["BIAS_STEP_RAD_S"] \
-                else 0.0
+            bar = max(H["BIAS_STEP_RAD_S"], H["SPREAD_FACTOR"] * np.sqrt(spread[c]))
+            bad_calm[c] = bad_calm[c] + dt[k] if was[c] and dev < 0.5 * bar else 0.0
             bad[c] = (was[c] and bad_calm[c] < H["READMIT_S"]) or stepped
         g[bad] = np.nan
         g_miss = np.where(np.isnan(g), g_miss + dt[k], 0.0)
