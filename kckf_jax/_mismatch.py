@@ -11,9 +11,10 @@ host, once per session): per pair, the pair's difference (averaged over ``SMOOTH
 against what the exact rotations predict from the lower link's gyros and the joints' Hall
 angles (``R^T w_lo - w_lo`` about the pair's axis). A pair whose difference wanders by more
 than ``MIN_SPREAD_RAD_S`` (95th percentile of its distance from its median) and follows the
-prediction (correlation at least ``MIN_CORR``) is named once, with its size and the remedy
-(``--method kckf3d``); its readings stay in use. A bias step does not follow the pose (its
-correlation with the prediction is low), so it is not taken for the model's approximation.
+prediction (correlation at least ``MIN_CORR``, slope within ``SLOPE_RANGE``) is named once,
+with its size and the remedy (``--method kckf3d``); its readings stay in use. A bias step
+does not follow the pose (its correlation with the prediction is low), so it is not taken
+for the model's approximation.
 ``kckf3d`` models the rotations: nothing to say.
 """
 
@@ -29,6 +30,9 @@ from ._screen import screen
 SMOOTH_S = 0.25  # the pair's difference averaged over this (the monitor's fast average)
 MIN_SPREAD_RAD_S = 0.05  # the monitor's bias-step size: a smaller wander changes nothing
 MIN_CORR = 0.5  # the difference follows the exact rotations' prediction at least this well
+# ... at about its scale: on linear data at large angles and rates the gyros' scale errors
+# (1 %) correlate with the prediction too, at a slope of a few hundredths.
+SLOPE_RANGE = (0.5, 2.0)
 
 
 def _moving_mean(x: np.ndarray, n: int) -> np.ndarray:
@@ -123,11 +127,14 @@ def model_mismatch(session, method: str = "kckf", params=None) -> list[dict]:
         if spread < MIN_SPREAD_RAD_S or np.std(p[ok]) == 0 or np.std(d[ok]) == 0:
             continue
         corr = float(np.corrcoef(d[ok], p[ok])[0, 1])
-        if corr < MIN_CORR:
+        dc, pc = d[ok] - d[ok].mean(), p[ok] - p[ok].mean()
+        slope = float(dc @ pc / (pc @ pc))
+        if corr < MIN_CORR or not SLOPE_RANGE[0] <= slope <= SLOPE_RANGE[1]:
             continue
         between = list(range(axis_start[lo], axis_start[hi]))
         out.append({"columns": [names[lower], names[upper]], "axis": AXES[ax],
                     "spread_rad_s": round(spread, 4), "corr": round(corr, 3),
+                    "slope": round(slope, 3),
                     "joints": [robot.angle_names[k] for k in between],
                     "max_angle_deg": round(float(np.nanmax(np.abs(theta[:, between])) / DEG),
                                            1)})
