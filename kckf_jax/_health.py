@@ -320,11 +320,21 @@ def screened_series(params, dt, gyro, hall_v, exact: bool = False):
     ``(gyro, hall_v, codes)``, codes per reading (``... G + M``, ``_screen.FAULT_KINDS``; 0:
     used or missing)."""
     used = screen(params, gyro, hall_v, jnp)
-    policy = params.faults
-    if not policy.monitors:
+    watched = (monitor(params, dt, used.gyro, used.hall_v, exact) if params.faults.monitors
+               else None)
+    return by_policy(params.faults, used, watched)
+
+
+def by_policy(policy, used, watched):
+    """The readings the filter uses and each one's code, as the fault policy ``policy`` says
+    (``FaultPolicy``), from the screen's result ``used`` (``_screen.Screened``) and the
+    monitor's ``(gyro, hall_v, gyro_code, hall_code)`` (``monitor`` over a recording,
+    ``health_step`` on a packet; ``None`` where it did not run): ``(gyro, hall_v, codes)``,
+    codes ``... G + M``. One decision for the batch filter and the stream's step."""
+    if watched is None:
         return used.gyro, used.hall_v, jnp.concatenate([used.gyro_code, used.hall_code],
                                                        axis=-1)
-    g, v, g_code, h_code = monitor(params, dt, used.gyro, used.hall_v, exact)
+    g, v, g_code, h_code = watched
     codes = jnp.concatenate([jnp.maximum(used.gyro_code, g_code),
                              jnp.maximum(used.hall_code, h_code)], axis=-1)
     if not policy.isolates:  # ``report``: named, every screened reading still used

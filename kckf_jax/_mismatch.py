@@ -23,9 +23,11 @@ from __future__ import annotations
 import numpy as np
 
 from ._hall import DEG, hall_exponentials
+from ._kernel import exact_kinematics
 from ._robot import AXES
 from ._rotations import joint_rotation
 from ._screen import screen
+from ._stats import hold_last, moving_mean
 
 SMOOTH_S = 0.25  # the pair's difference averaged over this (the monitor's fast average)
 MIN_SPREAD_RAD_S = 0.05  # the monitor's bias-step size: a smaller wander changes nothing
@@ -35,35 +37,10 @@ MIN_CORR = 0.5  # the difference follows the exact rotations' prediction at leas
 SLOPE_RANGE = (0.5, 2.0)
 
 
-def _moving_mean(x: np.ndarray, n: int) -> np.ndarray:
-    """Centred moving mean over ``n`` rows of a series with NaNs (skipped)."""
-    ok = np.isfinite(x)
-    c = np.concatenate([[0.0], np.cumsum(np.where(ok, x, 0.0))])
-    k = np.concatenate([[0], np.cumsum(ok)])
-    lo = np.clip(np.arange(x.size) - n // 2, 0, x.size)
-    hi = np.clip(lo + n, 0, x.size)
-    cnt = k[hi] - k[lo]
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(cnt > 0, (c[hi] - c[lo]) / np.maximum(cnt, 1), np.nan)
-
-
-def _hold(x: np.ndarray) -> np.ndarray:
-    """Each NaN of ``x`` (``T``) takes the last finite value before it (the first finite one
-    before any)."""
-    ok = np.isfinite(x)
-    if not ok.any():
-        return x
-    idx = np.where(ok, np.arange(x.size), 0)
-    np.maximum.accumulate(idx, out=idx)
-    out = x[idx]
-    first = np.flatnonzero(ok)[0]
-    out[:first] = x[first]
-    return out
-
-
 def joint_angles_from_hall(session, params) -> np.ndarray:
     """Each joint axis's angle (``T x J``, rad): the mean of its Hall sensors' angles through
-    their curves (Eq. 1, ``params``), readings the screen leaves out skipped, holes held."""
+    their curves (Eq. 1, ``params``), readings the screen leaves out skipped, holes held (NaN
+    throughout for a joint axis without a reading)."""
     robot = session.robot
     used = screen(params, np.asarray(session.gyro, np.float64),
                   np.asarray(session.hall_v, np.float64), np)
@@ -77,7 +54,8 @@ def joint_angles_from_hall(session, params) -> np.ndarray:
     ok = np.isfinite(pair)
     with np.errstate(invalid="ignore"):
         theta = np.where(ok.any(-1), np.nansum(pair, -1) / np.maximum(ok.sum(-1), 1), np.nan)
-    return np.stack([_hold(theta[:, j]) for j in range(J)], axis=1)
+    return np.stack([hold_last(theta[:, j]) if np.isfinite(theta[:, j]).any() else theta[:, j]
+                     for j in range(J)], axis=1)
 
 
 def model_mismatch(session, method: str = "kckf", params=None) -> list[dict]:
@@ -85,7 +63,7 @@ def model_mismatch(session, method: str = "kckf", params=None) -> list[dict]:
     pose (module docstring): ``[{"columns": [a, b], "axis", "spread_rad_s", "corr",
     "joints", "max_angle_deg"}]``, empty where the model holds or for ``kckf3d``.
     ``params``: the Hall curves (default: the session's paper defaults)."""
-    if method == "kckf3d":
+    if exact_kinematics(method):
         return []
     from ._params import Params
 
@@ -110,16 +88,16 @@ def model_mismatch(session, method: str = "kckf", params=None) -> list[dict]:
         seen.add(key)
         lo, hi = sorted((c // 3, m // 3))
         ax = c % 3
-        w_lo = np.stack([_hold(gyro[:, 3 * lo + k]) for k in range(3)], axis=1)
-        if not np.isfinite(w_lo).all():
-            continue
+        if not all(np.isfinite(gyro[:, 3 * lo + k]).any() for k in range(3)):
+            continue  # a rate of the lower link never read
+        w_lo = np.stack([hold_last(gyro[:, 3 * lo + k]) for k in range(3)], axis=1)
         R = np.broadcast_to(np.eye(3), (t.size, 3, 3))
         for j in range(lo, hi):  # joint j joins links j and j + 1
             R = R @ joint_rotation(robot.joints[j], theta[:, axis_start[j]:axis_start[j + 1]])
         predicted = np.einsum("tji,tj->ti", R, w_lo)[:, ax] - w_lo[:, ax]
         upper, lower = (c, m) if c // 3 == hi else (m, c)
-        d = _moving_mean(gyro[:, upper] - gyro[:, lower], n)
-        p = _moving_mean(predicted, n)
+        d = moving_mean(gyro[:, upper] - gyro[:, lower], n)
+        p = moving_mean(predicted, n)
         ok = np.isfinite(d) & np.isfinite(p)
         if ok.sum() < 10:
             continue

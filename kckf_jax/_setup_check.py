@@ -23,6 +23,7 @@ from ._hall import DEG, hall_exponentials
 from ._health import CLIP_MIN_RAD_S, CLIP_PEAK_FRACTION, CLIP_REPEATS
 from ._params import Params
 from ._screen import screen
+from ._stats import hold_last, moving_mean
 
 #: High-pass window, s: each series less its centred moving mean over this span. A gyro bias
 #: integrates to a ramp, which a centred mean reproduces exactly, and a Hall curve's offset is
@@ -180,7 +181,7 @@ class _Data:
         self.channels = sorted({int(c) for c in np.concatenate([self.plus, self.minus])})
         self.gyro = {}
         for c in self.channels:
-            u = _hold(gyro[:, c])
+            u = hold_last(gyro[:, c])
             angle = np.concatenate([[0.0], np.cumsum(dt[1:] * u[:-1])]) if T else u
             band = self._band(angle)
             # A held faulty rate (a saturated gyro's true rate was larger) steps the angle by an
@@ -192,7 +193,7 @@ class _Data:
     def _band(self, x: np.ndarray) -> np.ndarray:
         """The band-passed ``x``: its ``SMOOTH_S`` box mean less its ``HIGHPASS_S`` box mean
         (NaN skipped in a box; NaN where the short box is empty or the row is not usable)."""
-        d = _box(x, self.box) - _box(x, 2 * self.half + 1)
+        d = moving_mean(x, self.box) - moving_mean(x, 2 * self.half + 1)
         d[~self.row_ok] = np.nan
         return d
 
@@ -234,19 +235,6 @@ class _Data:
                      for col, curve in zip(cols, (m_l, m_r)))
 
 
-def _hold(u: np.ndarray) -> np.ndarray:
-    """``u`` with every NaN replaced by the last finite value before it (the first finite
-    value before the first; zeros if there is none)."""
-    ok = np.isfinite(u)
-    if not ok.any():
-        return np.zeros_like(u)
-    idx = np.where(ok, np.arange(u.size), 0)
-    np.maximum.accumulate(idx, out=idx)
-    out = u[idx]
-    out[: int(np.argmax(ok))] = u[int(np.argmax(ok))]
-    return out
-
-
 def _clipped(u: np.ndarray) -> np.ndarray:
     """The readings of one gyro channel that repeat one value, more than ``CLIP_REPEATS`` times
     in a row, at ``CLIP_PEAK_FRACTION`` or more of the largest magnitude read so far and at
@@ -273,22 +261,6 @@ def _near(flag: np.ndarray, before: int, after: int) -> np.ndarray:
     lo = np.clip(k - before, 0, flag.size)
     hi = np.clip(k + after + 1, 0, flag.size)
     return c[hi] > c[lo]
-
-
-def _box(x: np.ndarray, n: int) -> np.ndarray:
-    """The centred ``n``-row moving mean of ``x`` (rows ``k - n // 2 .. k + (n - 1) // 2``,
-    cut at the ends), NaNs skipped (NaN where all are)."""
-    if n <= 1:
-        return x.copy()
-    ok = np.isfinite(x)
-    s = np.concatenate([[0.0], np.cumsum(np.where(ok, x, 0.0))])
-    c = np.concatenate([[0], np.cumsum(ok)])
-    k = np.arange(x.size)
-    lo = np.clip(k - n // 2, 0, x.size)
-    hi = np.clip(k + (n - 1) // 2 + 1, 0, x.size)
-    count = c[hi] - c[lo]
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(count > 0, (s[hi] - s[lo]) / np.maximum(count, 1), np.nan)
 
 
 def _fit(x: np.ndarray, y: np.ndarray) -> _Fit:

@@ -2,7 +2,8 @@
 float64 and without a statistics library: the chi-square and F quantiles, the pooled
 autocorrelation of series with missing values and the Ljung-Box statistic, least squares, and
 the autoregressive model of a residual that says how much its correlation in time inflates
-what a regressor takes from noise.
+what a regressor takes from noise; and two helpers for series with missing values that the
+set-up check and the model-mismatch check share (``hold_last``, ``moving_mean``).
 
 The chi-square quantile is Wilson and Hilferty's approximation, the F quantile the
 regularised incomplete beta function inverted by bisection (both tested against table
@@ -24,6 +25,35 @@ _Z95 = 1.6448536269514722  # one-sided 95 % point of the standard normal
 
 
 # ----------------------------------------------------------------------------- quantiles
+def hold_last(u: np.ndarray) -> np.ndarray:
+    """``u`` with every NaN replaced by the last finite value before it (the first finite
+    value before the first; zeros if there is none)."""
+    ok = np.isfinite(u)
+    if not ok.any():
+        return np.zeros_like(u)
+    idx = np.where(ok, np.arange(u.size), 0)
+    np.maximum.accumulate(idx, out=idx)
+    out = u[idx]
+    out[: int(np.argmax(ok))] = u[int(np.argmax(ok))]
+    return out
+
+
+def moving_mean(x: np.ndarray, n: int) -> np.ndarray:
+    """The centred ``n``-row moving mean of ``x`` (rows ``k - n // 2 .. k + (n - 1) // 2``,
+    cut at the ends), NaNs skipped (NaN where all are)."""
+    if n <= 1:
+        return x.copy()
+    ok = np.isfinite(x)
+    s = np.concatenate([[0.0], np.cumsum(np.where(ok, x, 0.0))])
+    c = np.concatenate([[0], np.cumsum(ok)])
+    k = np.arange(x.size)
+    lo = np.clip(k - n // 2, 0, x.size)
+    hi = np.clip(k + (n - 1) // 2 + 1, 0, x.size)
+    count = c[hi] - c[lo]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(count > 0, (s[hi] - s[lo]) / np.maximum(count, 1), np.nan)
+
+
 def chi2_quantile(dof: float, z: float) -> float:
     """The quantile of the chi-square distribution with ``dof`` degrees of freedom at the
     standard normal's ``z`` (Wilson and Hilferty's cube-root approximation)."""

@@ -12,7 +12,7 @@ import numpy as np
 
 from .._gaps import GapPolicy
 from .._hall import hall_exponentials
-from .._health import health_step, init_health
+from .._health import by_policy, health_step, init_health
 from .._kernel import (
     FilterState,
     SensorSeries,
@@ -386,15 +386,10 @@ def stream_step_fn(params: Params, method: str, health: bool = False):
         if health:
             state, h = state
             used = screen(p, inputs.gyro, inputs.hall_v)
-            gyro, hall_v = used.gyro, used.hall_v
-            codes = jnp.concatenate([used.gyro_code, used.hall_code])
+            watched = None
             if p.faults.monitors:  # as the batch filter's ``_health.screened_series``
-                h, g_mon, v_mon, g_code, h_code = health_step(p, h, inputs.dt, used.gyro,
-                                                              used.hall_v, exact)
-                codes = jnp.concatenate([jnp.maximum(used.gyro_code, g_code),
-                                         jnp.maximum(used.hall_code, h_code)])
-                if p.faults.isolates:  # ``report``: named, every screened reading used
-                    gyro, hall_v = g_mon, v_mon
+                h, *watched = health_step(p, h, inputs.dt, used.gyro, used.hall_v, exact)
+            gyro, hall_v, codes = by_policy(p.faults, used, watched)
             inputs = SensorSeries(inputs.dt, gyro, hall_v)
         new, est = step(p, state, inputs, method)  # a non-finite update keeps the state
         ok = ~est.skipped
