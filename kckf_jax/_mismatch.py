@@ -37,16 +37,20 @@ MIN_CORR = 0.5  # the difference follows the exact rotations' prediction at leas
 SLOPE_RANGE = (0.5, 2.0)
 
 
-def joint_angles_from_hall(session, params) -> np.ndarray:
+def joint_angles_from_hall(session, params, codes=None) -> np.ndarray:
     """Each joint axis's angle (``T x J``, rad): the mean of its Hall sensors' angles through
     their curves (Eq. 1, ``params``), readings the screen leaves out skipped, holes held (NaN
-    throughout for a joint axis without a reading)."""
+    throughout for a joint axis without a reading). ``codes``: the session's fault codes
+    where a filter already judged it (``Estimate.faults``, ``G + M`` per row), so its Hall
+    readings are not screened again."""
     robot = session.robot
-    used = screen(params, np.asarray(session.gyro, np.float64),
-                  np.asarray(session.hall_v, np.float64), np)
+    hall_v = np.asarray(session.hall_v, np.float64)
+    if codes is None:
+        v = screen(params, np.asarray(session.gyro, np.float64), hall_v, np).hall_v
+    else:
+        v = np.where(np.asarray(codes)[:, 3 * robot.n_links:] > 0, np.nan, hall_v)
     (w1, w2), (k1, k2) = hall_exponentials(*(np.asarray(c, np.float64)
                                              for c in params.hall_coeffs))
-    v = used.hall_v
     with np.errstate(over="ignore", invalid="ignore"):
         ang = w1 * np.exp(k1 * v) + w2 * np.exp(k2 * v)
     J = robot.n_joint_axes
@@ -58,11 +62,12 @@ def joint_angles_from_hall(session, params) -> np.ndarray:
                      for j in range(J)], axis=1)
 
 
-def model_mismatch(session, method: str = "kckf", params=None) -> list[dict]:
+def model_mismatch(session, method: str = "kckf", params=None, codes=None) -> list[dict]:
     """The paper's gyro pairs that the data show do not read the same rate, following the
     pose (module docstring): ``[{"columns": [a, b], "axis", "spread_rad_s", "corr",
     "joints", "max_angle_deg"}]``, empty where the model holds or for ``kckf3d``.
-    ``params``: the Hall curves (default: the session's paper defaults)."""
+    ``params``: the Hall curves (default: the session's paper defaults); ``codes``: as
+    ``joint_angles_from_hall``'s."""
     if exact_kinematics(method):
         return []
     from ._params import Params
@@ -70,7 +75,7 @@ def model_mismatch(session, method: str = "kckf", params=None) -> list[dict]:
     robot = session.robot
     if params is None:
         params = Params.paper_defaults(robot, session.hall_models, limits=session.limits)
-    theta = joint_angles_from_hall(session, params)
+    theta = joint_angles_from_hall(session, params, codes)
     gyro = np.asarray(session.gyro, np.float64)
     t = np.asarray(session.t, np.float64)
     n = max(1, int(round(SMOOTH_S / max(np.median(np.diff(t)), 1e-6)))) if t.size > 1 else 1

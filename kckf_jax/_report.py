@@ -50,9 +50,10 @@ def data_faults(sessions: Sequence[Session], params: Params | None = None,
     people per finding. ``method``: whose model of the gyros judges them (``kckf3d``: no two
     gyros measure the same rate, ``_screen.stand_ins``). ``codes``: each session's fault
     codes where a filter of ``method`` already screened it (``Estimate.faults``), so the
-    readings are not judged twice. ``faults``: the fault policy (``FaultPolicy`` or its name;
-    default ``params``' own, else ``isolate``): under ``report`` the monitor's findings are
-    named as still used."""
+    readings are not judged twice. ``"model_mismatch"``: per session, the paper's gyro pairs
+    that follow the pose instead of reading one rate (``_mismatch``). ``faults``: the fault
+    policy (``FaultPolicy`` or its name; default ``params``' own, else ``isolate``): under
+    ``report`` the monitor's findings are named as still used."""
     found_faults, out_of_range, gap_doc, setup, lines = {}, {}, {}, {}, []
     mismatch = {}
     plist = session_params(sessions, params, faults=faults)
@@ -73,7 +74,7 @@ def data_faults(sessions: Sequence[Session], params: Params | None = None,
         line = describe_faults(key, found_faults[key], p.faults)
         if line:
             lines.append(line)
-        pairs = model_mismatch(s, method, p)
+        pairs = model_mismatch(s, method, p, codes_i)
         if pairs:
             mismatch[key] = pairs
             lines.append(describe_mismatch(key, pairs))
