@@ -45,6 +45,8 @@ The public API (everything else lives in private modules; docs/architecture.md m
   the health monitor's findings do: ``isolate``, ``report`` or ``off``; ``FAULT_POLICIES``,
   ``Params.with_faults``) and ``model_mismatch`` (the paper's gyro pairs that the data show
   do not read the same rate, following the pose: the linear model's limit, not a fault);
+  ``hall_drift`` (a Hall sensor drifting slowly from its partner, which the monitor's fast
+  rules do not see);
 * analysis: ``observability_ranks``;
 * the one process-wide setting it offers, made only when asked (XLA's CPU while loops
   compiled as one kernel each; importing kckf_jax changes nothing in the process):
@@ -61,6 +63,7 @@ from ._diagnostics import Diagnostics as Diagnostics
 from ._diagnostics import ErrorParts as ErrorParts
 from ._diagnostics import Whiteness as Whiteness
 from ._diagnostics import diagnostics as diagnostics
+from ._drift import hall_drift as hall_drift
 from ._effects import EFFECTS as EFFECTS
 from ._effects import SensorEffects as SensorEffects
 from ._export import export_step as export_step

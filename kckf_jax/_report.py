@@ -14,6 +14,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from ._diagnostics import diagnostics, session_innovations
+from ._drift import describe_drift, hall_drift
 from ._gaps import GapPolicy, find_gaps
 from ._gaps import describe as describe_gaps
 from ._kernel import KALMAN_METHODS
@@ -51,11 +52,12 @@ def data_faults(sessions: Sequence[Session], params: Params | None = None,
     gyros measure the same rate, ``_screen.stand_ins``). ``codes``: each session's fault
     codes where a filter of ``method`` already screened it (``Estimate.faults``), so the
     readings are not judged twice. ``"model_mismatch"``: per session, the paper's gyro pairs
-    that follow the pose instead of reading one rate (``_mismatch``). ``faults``: the fault
+    that follow the pose instead of reading one rate (``_mismatch``); ``"hall_drift"``: the
+    joint axes whose two Hall sensors drift apart slowly (``_drift``). ``faults``: the fault
     policy (``FaultPolicy`` or its name; default ``params``' own, else ``isolate``): under
     ``report`` the monitor's findings are named as still used."""
     found_faults, out_of_range, gap_doc, setup, lines = {}, {}, {}, {}, []
-    mismatch = {}
+    mismatch, drift = {}, {}
     plist = session_params(sessions, params, faults=faults)
     for i, (s, p) in enumerate(zip(sessions, plist)):
         key = s.path or "session"
@@ -78,6 +80,10 @@ def data_faults(sessions: Sequence[Session], params: Params | None = None,
         if pairs:
             mismatch[key] = pairs
             lines.append(describe_mismatch(key, pairs))
+        pairs = hall_drift(s, p, codes_i)
+        if pairs:
+            drift[key] = pairs
+            lines.append(describe_drift(key, pairs))
         found = setup_check(s, p, exact=method == "kckf3d")
         if found:
             setup[key] = [dataclasses.asdict(f) for f in found]
@@ -91,8 +97,8 @@ def data_faults(sessions: Sequence[Session], params: Params | None = None,
             gap_doc[key] = [g.to_json() for g in found]
             lines.append(describe_gaps(key, found))
     return {"faults": found_faults, "setup": setup, "out_of_range": out_of_range,
-            "gaps": gap_doc, "model_mismatch": mismatch, "fault_policy": str(plist[0].faults)
-            }, lines
+            "gaps": gap_doc, "model_mismatch": mismatch, "hall_drift": drift,
+            "fault_policy": str(plist[0].faults)}, lines
 
 
 def estimate_faults(sessions: Sequence[Session], method: str, estimates) -> list[str]:

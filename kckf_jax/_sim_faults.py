@@ -41,7 +41,7 @@ from ._session import Session
 #: Every kind of fault, in the order the docs list them.
 FAULT_KINDS = (
     "disconnect", "short", "noise", "stuck", "flicker", "clip", "bias_step", "blank",
-    "dropout", "coeff", "swap", "sign", "gap",
+    "dropout", "coeff", "swap", "sign", "gap", "drift",
 )
 #: ``extra_meta`` (``meta.json``) key of the record of injected faults.
 META_KEY = "simulated_faults"
@@ -61,17 +61,17 @@ _APPLIES = {
     "disconnect": ("hall",), "short": ("hall",), "noise": ("hall", "gyro"),
     "stuck": ("hall", "gyro"), "flicker": ("hall",), "clip": ("gyro",),
     "bias_step": ("gyro",), "blank": ("gyro",), "dropout": ("hall", "gyro"),
-    "coeff": ("hall",), "swap": ("joint",), "sign": ("gyro",), "gap": (),
+    "coeff": ("hall",), "swap": ("joint",), "sign": ("gyro",), "gap": (), "drift": ("hall",),
 }
 _SPAN = {"coeff": "none", "sign": "none", "gap": "required"}  # the others: "optional"
 _SIZELESS = ("dropout", "swap", "sign", "gap")
-_SIGNED = ("bias_step", "stuck")  # a signed reading or offset; every other size is a magnitude
+_SIGNED = ("bias_step", "stuck", "drift")  # signed: a step, a reading, an offset
 #: Default sizes that do not depend on the session (``short``'s is the ADC's top,
 #: ``disconnect``'s its bottom, ``stuck``'s the reading at FROM).
 DEFAULT_SIZE = {
     ("noise", "hall"): 0.5, ("noise", "gyro"): 1.0, ("flicker", "hall"): 0.3,
     ("clip", "gyro"): 2.0, ("bias_step", "gyro"): 0.2, ("blank", "gyro"): 1.2,
-    ("coeff", "hall"): 10.0,
+    ("coeff", "hall"): 10.0, ("drift", "hall"): 0.25,
 }
 # Salts the fault seed so that its draws share nothing with the simulator's own streams.
 _SALT = 4099
@@ -129,6 +129,9 @@ class Fault:
               sign. No span.
             * ``gap`` (no column): every sensor row in the span removed, the timestamps
               jumping over it (a logger that stopped); the motion capture is untouched.
+            * ``drift`` (Hall): an offset growing steadily from 0 at the span's first row to
+              ``size`` V at its last (default 0.25 V; signed), then quantised and clipped like
+              ``noise``: a sensor warming up, or a magnet creeping in its mount.
 
         column: a sensor column of the robot (``hall2_y_r``, ``gyro3_x``), a joint axis for
             ``swap`` (``hall1_x``), ``None`` for ``gap``.
@@ -295,6 +298,7 @@ _SIZE_WORDS = {
     "clip": "the saturation level > 0, rad/s",
     "bias_step": "the step, rad/s",
     "blank": "the rate > 0 from which a reading is missing, rad/s",
+    "drift": "the offset reached at the span's end, V",
     "coeff": "a factor > 0 on the coefficient a",
 }
 
@@ -432,6 +436,9 @@ def _apply(kind: str, x: np.ndarray, size: float | None, rng: np.random.Generato
         return np.full_like(x, np.nan)
     if kind == "sign":
         return 0.0 - x  # not -x: a zero reading stays 0, never -0
+    if kind == "drift":
+        y = x + size * np.linspace(0.0, 1.0, x.size)
+        return np.clip(np.round(y / adc_step) * adc_step, lo, hi)
     raise AssertionError(kind)  # every other kind is handled by inject_faults
 
 
