@@ -1,6 +1,7 @@
 """Sensor faults: what each does to the KCKF's error, and whether it is named.
 
     python benchmarks/faults.py [--seeds 1,2,3] [--steps 60] [--json]
+    python benchmarks/faults.py --exact [--seeds 1,2]
 
 Sessions: ``kckf simulate --kind cyclic --duration 60 --joints x,y,x,y`` for each seed (its
 own robot: ``device_seed`` = seed), each fault of issue 33 written onto a copy with
@@ -80,12 +81,52 @@ def named(session, est, specs, params):
     return "no"
 
 
+#: Issue 45: the faults on exact-rotation sessions, filtered by kckf3d (``--exact``).
+EXACT_FAULTS = {
+    "Hall disconnected for 10 s": ["disconnect:hall1_x_l@10-20"],
+    "2 s of 0.5 V noise on one Hall sensor": ["noise:hall1_x_l@10-12=0.5"],
+    "gyro clipped at +-2 rad/s": ["clip:gyro5_x=2.0"],
+    "gyro bias steps by 0.2 rad/s": ["bias_step:gyro3_x@15=0.2"],
+    "Hall stuck at 1.65 V for 10 s": ["stuck:hall1_x_l@10-20=1.65"],
+    "two joints' Hall sensors at once": ["disconnect:hall1_x_l@10-20",
+                                          "stuck:hall3_x_r@10-20=1.65"],
+    "a Hall sensor drifting by 0.25 V": ["drift:hall2_y_r=0.25"],
+}
+
+
+def exact(seeds):
+    """``--exact``: each of ``EXACT_FAULTS`` on a 30 s exact-rotation walking session of
+    ``x,y,x,y`` per seed, kckf3d with paper defaults, float32: the mean RMSE (deg) clean and
+    faulty, whether within 1.3 x clean + 0.1, and what was named."""
+    for seed in seeds:
+        s = kk.simulate("x,y,x,y", "walking", seed, 30.0, kinematics="exact", device_seed=seed)
+        clean = kk.rmse_table([s], [kk.filter_sessions([s], "kckf3d")[0].angles])[
+            "mean_rmse_deg"]
+        print(f"seed {seed}: clean {clean:.2f} deg")
+        for name, specs in EXACT_FAULTS.items():
+            bad = kk.inject_faults(s, [kk.Fault.parse(x) for x in specs])
+            est = kk.filter_sessions([bad], "kckf3d")[0]
+            r = kk.rmse_table([bad], [est.angles])["mean_rmse_deg"]
+            names = bad.robot.gyro_names + bad.robot.hall_names
+            found = sorted({f"{f['column']} {f['kind']}" for f in kk.fault_stretches(
+                bad.t, est.faults, names)})
+            params = kk.Params.paper_defaults(bad.robot, bad.hall_models)
+            found += [f"{'/'.join(d['columns'])} drift" for d in kk.hall_drift(
+                bad, params, est.faults)]
+            print(f"  {name:40s} {r:5.2f} deg, within {r <= 1.3 * clean + 0.1}, named: "
+                  f"{', '.join(found) or 'nothing'}")
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser()
     ap.add_argument("--seeds", default="1,2,3")
     ap.add_argument("--steps", type=int, default=60)
     ap.add_argument("--json", action="store_true")
+    ap.add_argument("--exact", action="store_true",
+                    help="the faults on exact-rotation sessions with kckf3d (paper defaults)")
     args = ap.parse_args(argv)
+    if args.exact:
+        return exact([int(x) for x in args.seeds.split(",")])
     robot = kk.Robot.from_spec("x,y,x,y")
     rows = {name: {"paper": [], "fitted": [], "max_deg": [], "named": [], "within": []}
             for name in FAULTS}
