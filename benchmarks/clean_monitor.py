@@ -1,7 +1,8 @@
 """The health monitor on clean data: what it isolates, and what that costs the estimates.
 
     python benchmarks/clean_monitor.py [--sessions 20] [--duration 30] [--steps 30]
-                                       [--cases all|quick] [--json OUT]
+                                       [--cases all|quick] [--only WORDS] [--method M]
+                                       [--json OUT]
 
 A monitor exists to make the estimates better; on a clean session it must take nothing out
 for more than a moment and cost nothing. Per case (kinematics, joint layout, kind of motion,
@@ -98,7 +99,8 @@ def main(argv=None) -> int:
     ap.add_argument("--duration", type=float, default=30.0)
     ap.add_argument("--steps", type=int, default=30)
     ap.add_argument("--cases", choices=("all", "quick"), default="all")
-    ap.add_argument("--only", help="a substring of the case's label to run only those")
+    ap.add_argument("--only", help="words of the case's label (all of them) to run only those")
+    ap.add_argument("--method", choices=("kckf", "kckf3d"), help="only this method's cases")
     ap.add_argument("--json", help="write the rows to this file")
     args = ap.parse_args(argv)
     n = 2 if args.cases == "quick" else args.sessions
@@ -106,7 +108,9 @@ def main(argv=None) -> int:
     rows = []
     for case in cases(args.cases):
         label = " ".join(str(c) for c in case)
-        if args.only and not all(w in label for w in args.only.split()):
+        if args.only and not all(w in label.split() for w in args.only.split()):
+            continue
+        if args.method and case[4] != args.method:
             continue
         t0 = time.perf_counter()
         row = run_case(case, n, duration, args.steps)

@@ -226,7 +226,8 @@ def health_step(params, h: Health, dt, gyro, hall_v, exact: bool = False):
     gap = dt > RESTART_S
     fresh = gap | ~h.ref_ok
     ref = h.ref + jnp.where(gap, 0.0, dt) * rate
-    step_move = jnp.abs(dt * rate)[..., joint]
+    per_sensor_move = (dt * rate)[..., joint]
+    step_move = jnp.abs(per_sensor_move)
 
     ok = jnp.isfinite(hall_v)
     v = jnp.where(ok, hall_v, 1.65)
@@ -246,10 +247,18 @@ def health_step(params, h: Health, dt, gyro, hall_v, exact: bool = False):
     # motion): a sensor is noisy only where that difference is rough too, or its partner
     # cannot tell (missing or out). A roughness against the reference that both share is the
     # reference's (the gyros' joint rate under a model that does not fit: exact rotations).
+    # The motion the curves' disagreement scales with is the joint's own: the gyros' joint rate
+    # or, where that is the first-order model's (a three-axis joint at large angles), the
+    # smaller of the two sensors' own changes (a noisy sensor's partner moves only with the
+    # joint).
     de = jnp.where(judged, e - h.last_e, 0.0)
+    own = jnp.abs(de + per_sensor_move)
+    pair_move = jnp.maximum(step_move[..., 0::2], jnp.minimum(own[..., 0::2], own[..., 1::2]))
     pair_judged = judged[..., 0::2] & judged[..., 1::2]
+    noise2 = 2.0 * (slope * sigma_v) ** 2
     zp = jnp.where(pair_judged, (de[..., 0::2] - de[..., 1::2]) ** 2
-                   / (expect[..., 0::2] + expect[..., 1::2]), 0.0)
+                   / (noise2[..., 0::2] + noise2[..., 1::2]
+                      + 2.0 * (MOTION_FRACTION * pair_move + MOTION_FLOOR_RAD) ** 2), 0.0)
     pair_rough = jnp.where(pair_judged, h.pair_rough + a * (zp - h.pair_rough),
                            jnp.where(fresh, 0.0, h.pair_rough))
     partner = np.arange(robot.n_hall) ^ 1

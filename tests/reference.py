@@ -294,7 +294,10 @@ def usable_readings(joints, t, gyro, hall_v, params):
       if its joint's pair roughness is above ROUGH_HIGH too or its partner (the other sensor
       of the joint axis) had no reading or was isolated on the row before. The pair
       roughness: where both sensors' residual changes are judged, the change of their
-      difference squared over the sum of the two sensors' divisors, averaged alike;
+      difference squared over the sum of the two sensors' noise terms (2 (slope sigma_v)^2
+      each) and twice (MOTION_FRACTION m + MOTION_FLOOR_RAD)^2, m the larger of |dt rate| and
+      the smaller of the two sensors' own angle changes (residual change + dt rate),
+      averaged alike;
     * a sensor whose voltage is unchanged for STUCK_S while the joint moved STUCK_MOVE_RAD is
       isolated;
     * an isolated sensor is used again once calm (roughness below ROUGH_LOW, not stuck, read)
@@ -390,6 +393,7 @@ def usable_readings(joints, t, gyro, hall_v, params):
         angle = np.full(M, np.nan)
         use = np.zeros(M, bool)
         de, div = np.full(M, np.nan), np.full(M, np.nan)  # judged residual changes
+        noise = np.full(M, np.nan)
         iso_before = iso.copy()
         for m in range(M):
             j = L["sensor_joint_axis"][m]
@@ -401,12 +405,16 @@ def usable_readings(joints, t, gyro, hall_v, params):
             if np.isfinite(last_e[m]) and not fresh[j]:
                 sv = hall_slope(V, params, m) * float(np.asarray(params["sigma_hall_v"])[m])
                 move = abs(dt[k] * rate[j])
-                div[m] = 2 * sv**2 + (H["MOTION_FRACTION"] * move + H["MOTION_FLOOR_RAD"])**2
+                noise[m] = 2 * sv**2
+                div[m] = noise[m] + (H["MOTION_FRACTION"] * move + H["MOTION_FLOOR_RAD"])**2
                 de[m] = e - last_e[m]
         for j in range(J):
             a_, b_ = 2 * j, 2 * j + 1
             if np.isfinite(de[a_]) and np.isfinite(de[b_]):
-                zp = (de[a_] - de[b_]) ** 2 / (div[a_] + div[b_])
+                move = abs(dt[k] * rate[j])
+                pm = max(move, min(abs(de[a_] + dt[k] * rate[j]), abs(de[b_] + dt[k] * rate[j])))
+                zp = (de[a_] - de[b_]) ** 2 / (noise[a_] + noise[b_] + 2 * (
+                    H["MOTION_FRACTION"] * pm + H["MOTION_FLOOR_RAD"]) ** 2)
                 pair_rough[j] += min(1.0, dt[k] / H["ROUGH_TAU_S"]) * (zp - pair_rough[j])
             elif fresh[j]:
                 pair_rough[j] = 0.0
