@@ -151,6 +151,11 @@ def build_parser(commands: Mapping[str, Callable], demo_steps: int) -> argparse.
     r.add_argument("--allow-from", action="append", metavar="HOST[:PORT]",
                    help="the sender to take packets from (repeatable; lsl://: its source id); "
                         "default: the first heard; others get the status foreign")
+    r.add_argument("--handover-after", type=float, default=0.5, metavar="SEC",
+                   help="udp://: once the sender has been silent this long, a packet from its "
+                        "host on a new port (a restarted robot) makes that port the sender, "
+                        "named on stderr and in the record (default 0.5 s; inf: never); a "
+                        "second sender while the first is live stays foreign")
     r.add_argument("--params", help="fitted parameters (kckf fit)")
     r.add_argument("--meta", help="meta.json giving the robot layout and Hall calibration")
     r.add_argument("--method", default="kckf")

@@ -298,7 +298,11 @@ def cmd_stream(args) -> int:
     source = st.open_source(args.source, session, realtime=args.realtime, robot=params.robot,
                             allow_from=args.allow_from, on_sender=lambda s: say(
                                 f"taking packets from {s} (the first sender heard; "
-                                "--allow-from chooses)"))
+                                "--allow-from chooses)"),
+                            handover_s=args.handover_after,
+                            on_handover=lambda old, new, silence_s: say(
+                                f"sender {old} silent {silence_s:.2f} s; taking {new} "
+                                "(same host) as the same robot"))
     sink = st.open_sink(args.sink, flush=session is None or args.realtime, robot=params.robot)
     stop = {"now": False}
     for sig in (signal.SIGINT, signal.SIGTERM):

@@ -3,12 +3,16 @@
 
 One robot per stream: a source that can hear several senders (UDP) takes packets from one,
 the first it hears or those ``allow_from`` names; any other sender's packet comes back as
-``Foreign`` and gets the status ``foreign``. What the operating system dropped before the
-source could read it is ``Source.dropped`` (UDP on Linux: the socket's overflow count)."""
+``Foreign`` and gets the status ``foreign``. A robot that restarts comes back from the same
+host on a new port: once its sender has been silent for ``handover_s``, the UDP source takes
+the new port as the same robot (``Handover``) and the loop restarts the filter if the robot's
+clock started again. What the operating system dropped before the source could read it is
+``Source.dropped`` (UDP on Linux: the socket's overflow count)."""
 
 from __future__ import annotations
 
 import json
+import math
 import os
 import select
 import socket
@@ -18,8 +22,8 @@ import urllib.parse
 from collections.abc import Callable, Sequence
 
 from ._filter import StreamingFilter
-from ._packets import MAX_PACKET_BYTES, STATUSES, Packet, PacketParser
-from ._source import Foreign, Oversized, Source
+from ._packets import MAX_PACKET_BYTES, STATUSES, USED, Packet, PacketParser
+from ._source import Foreign, Handover, Oversized, Source
 
 #: Linux's socket option that adds the count of datagrams dropped so far to each one received.
 SO_RXQ_OVFL = getattr(socket, "SO_RXQ_OVFL", 40 if sys.platform.startswith("linux") else None)
@@ -55,7 +59,17 @@ class UdpSource(Source):
 
     Packets are taken from one sender: those ``allow_from`` names (``(address, port or
     None)``, ``parse_allow_from``), else the first heard (``on_sender(sender)`` is told);
-    another sender's packet is returned as ``Foreign`` unread. ``dropped``: what the kernel
+    another sender's packet is returned as ``Foreign`` unread.
+
+    Handover (without ``allow_from``): a packet from another port of the sender's host, once
+    the sender has been silent for ``handover_s`` seconds or more (a restarted robot's new
+    socket), makes that port the sender: ``on_handover(previous, sender, silence_s)`` is
+    told, it is returned as a ``Handover`` and the previous port's packets are ``Foreign``
+    from then on (listed in ``handovers``). A second sender while the first is live stays
+    ``Foreign``, even once the first falls silent (a port first heard before the sender's
+    last packet is another sender); another host is never taken over; ``handover_s=math.inf``:
+    never. The
+    silence is measured when packets are read (``time.monotonic``). ``dropped``: what the kernel
     dropped because the receive buffer was full (``SO_RXQ_OVFL`` on each datagram read, and
     ``count_dropped``: the socket's count in ``/proc/net/udp``, which also has what was
     dropped after the last read)."""
@@ -63,7 +77,10 @@ class UdpSource(Source):
     def __init__(self, host: str, port: int, rcvbuf: int = 8 << 20,
                  max_bytes: int = MAX_PACKET_BYTES,
                  allow_from: Sequence[tuple[str, int | None]] | None = None,
-                 on_sender: Callable[[str], None] | None = None):
+                 on_sender: Callable[[str], None] | None = None, handover_s: float = 0.5,
+                 on_handover: Callable[[str, str, float], None] | None = None):
+        if not handover_s >= 0:
+            raise ValueError(f"handover after {handover_s!r} s: expected 0 or more (inf: never)")
         self.host, self.port, self.rcvbuf, self.max_bytes = host, port, rcvbuf, max_bytes
         self.description = f"udp://{host}:{port}"
         self._buf = bytearray(max_bytes + 1)
@@ -72,6 +89,10 @@ class UdpSource(Source):
         self.sender: tuple[str, int] | None = None
         self.foreign = {}
         self._accepted: set[tuple[str, int]] = set()
+        self.handover_s, self.on_handover = float(handover_s), on_handover
+        self.handovers: list[tuple[str, str]] = []  # (previous, new) senders, in order
+        self._heard = -math.inf  # when a packet of an accepted sender was last read
+        self._first_foreign: dict[tuple[str, int], float] = {}  # when each was first heard
 
     def open(self) -> None:
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -103,13 +124,39 @@ class UdpSource(Source):
                 n, addr = self.sock.recvfrom_into(self._buf, len(self._buf), socket.MSG_TRUNC)
         except TimeoutError:
             return None
-        if addr not in self._accepted and not self._accept(addr):
-            name = f"{addr[0]}:{addr[1]}"
-            self.foreign[name] = self.foreign.get(name, 0) + 1
-            return Foreign(name)
+        now = time.monotonic()
+        if addr not in self._accepted:
+            if self._takes_over(addr, now):
+                previous, sender = self.handovers[-1]
+                silence, self._heard = now - self._heard, now
+                if self.on_handover is not None:
+                    self.on_handover(previous, sender, silence)
+                data = Oversized(n) if n > self.max_bytes else bytes(self._buf[:n])
+                return Handover(data, sender, previous, silence)
+            if not self._accept(addr):
+                name = f"{addr[0]}:{addr[1]}"
+                self.foreign[name] = self.foreign.get(name, 0) + 1
+                self._first_foreign.setdefault(addr, now)
+                return Foreign(name)
+        self._heard = now
         if n > self.max_bytes:
             return Oversized(n)
         return bytes(self._buf[:n])
+
+    def _takes_over(self, addr: tuple[str, int], now: float) -> bool:
+        """Whether ``addr`` (not accepted) is the sender's host back on a new port after the
+        sender's silence of ``handover_s`` or more; if so it becomes the sender."""
+        old = self.sender
+        if (self.allow_from is not None or old is None or addr[0] != old[0]
+                or not now - self._heard >= self.handover_s
+                or self._first_foreign.get(addr, math.inf) <= self._heard):
+            # (the last: a port heard while the sender was still sending is another sender)
+            return False
+        self._accepted.discard(old)
+        self._accepted.add(addr)
+        self.sender = addr
+        self.handovers.append((f"{old[0]}:{old[1]}", f"{addr[0]}:{addr[1]}"))
+        return True
 
     def _accept(self, addr: tuple[str, int]) -> bool:
         if self.allow_from is not None:
@@ -220,17 +267,23 @@ class ReplaySource(Source):
 
 def open_source(spec: str, session=None, realtime: bool = False, robot=None,
                 allow_from: Sequence[str] | None = None,
-                on_sender: Callable[[str], None] | None = None) -> Source:
+                on_sender: Callable[[str], None] | None = None, handover_s: float = 0.5,
+                on_handover: Callable[[str, str, float], None] | None = None) -> Source:
     """Parse a ``--source`` argument (``udp://``, ``serial://``, ``replay://``, ``lsl://``).
     ``allow_from``: ``--allow-from`` (UDP: ``HOST[:PORT]``; LSL: the stream's source id);
-    ``on_sender`` is told the sender a UDP source takes when none is named; ``robot``: the
-    layout an LSL stream's channel labels are matched to."""
+    ``on_sender`` is told the sender a UDP source takes when none is named; ``handover_s``,
+    ``on_handover``: a UDP source's handover to the sender's host on a new port after that
+    much silence (``UdpSource``; ``--handover-after``); ``robot``: the layout an LSL stream's
+    channel labels are matched to."""
     url = urllib.parse.urlparse(spec)
     if url.scheme == "udp":
         if not url.hostname or not url.port:
             raise ValueError(f"--source {spec!r}: expected udp://HOST:PORT")
+        if not handover_s >= 0:
+            raise ValueError(f"--handover-after {handover_s!r}: expected seconds, 0 or more "
+                             "(inf: never)")
         return UdpSource(url.hostname, url.port, allow_from=parse_allow_from(allow_from),
-                         on_sender=on_sender)
+                         on_sender=on_sender, handover_s=handover_s, on_handover=on_handover)
     if url.scheme == "lsl":
         name = spec[len("lsl://"):]
         if not name:
@@ -321,13 +374,21 @@ def run_stream(source: Source, sink, sf: StreamingFilter, parser: PacketParser, 
     """Read, filter and write until the source ends, ``max_packets`` packets were read,
     nothing arrived for ``idle_timeout`` seconds, or ``should_stop()``. Returns the count of
     packets, of each status, ``"dropped"`` (what the operating system dropped before the
-    source could read it, where it says: ``Source.count_dropped``), and (``"faulty"``) of
-    each column's faulty readings by kind (``"hall1_x_l railed": n``)."""
+    source could read it, where it says: ``Source.count_dropped``), ``"handover"`` (where
+    the source took its robot back on a new address, ``Handover``) and (``"faulty"``) of
+    each column's faulty readings by kind (``"hall1_x_l railed": n``).
+
+    A handover's record says so (``"handover": "HOST:OLD -> HOST:NEW"`` and its ``note``).
+    The first packet after it with a usable ``t`` continues the filter when ``t`` is after
+    the previous packet's (the gap policy applies to the timestamps), and otherwise (the
+    restarted robot's clock started again) restarts it there: status ``gap``, ``"gap":
+    "restart"``."""
     import gc
 
     counts = {s: 0 for s in STATUSES}
     faulty: dict[str, int] = {}
-    n = 0
+    n = n_handover = 0
+    clock_check = None  # the last handover, until a packet with a usable t has followed it
     gc.freeze()  # everything allocated so far is long-lived: keep it out of GC pauses
     last = time.monotonic()
     while not should_stop():
@@ -344,13 +405,36 @@ def run_stream(source: Source, sink, sf: StreamingFilter, parser: PacketParser, 
             continue
         last = now
         n += 1
+        handover = None  # what this record says of a handover
+        if isinstance(item, Handover):
+            n_handover += 1
+            clock_check = f"{item.previous} -> {item.sender}"
+            handover = (clock_check, f"sender {item.previous} silent {item.silence_s:.2f} s; "
+                                     f"taking {item.sender} (same host) as the same robot")
+            item = item.data
         if isinstance(item, Oversized):
             pkt = parser.empty("oversized", f"{item.n_bytes} bytes, limit {parser.max_bytes}")
         elif isinstance(item, Foreign):
             pkt = parser.empty("foreign", f"from {item.sender}")
         else:
             pkt = parser.check(item) if isinstance(item, Packet) else parser.parse(item)
+        restart = False
+        if clock_check is not None and pkt.status in USED:
+            t_prev = sf.t_prev
+            if t_prev is not None and not pkt.t > t_prev:  # the robot's clock started again
+                sf.reset()
+                restart = True
+                text = f"its clock started again (t = {pkt.t!r}, previous t = {t_prev!r}): " \
+                       "filter restarted"
+                handover = (clock_check, "; ".join(
+                    (handover[1] if handover else f"after the handover {clock_check}", text)))
+            clock_check = None
         rec = sf.push(pkt)  # may name more (a sensor isolated over time)
+        if handover is not None:
+            rec["handover"] = handover[0]
+            rec["note"] = " | ".join(x for x in (rec.get("note"), handover[1]) if x)
+            if restart and rec["status"] in ("ok", "masked"):
+                rec["status"], rec["gap"] = "gap", "restart"
         for name, kind in (pkt.faults or dict.fromkeys(pkt.faulty, "faulty")).items():
             key = f"{name} {kind}"
             faulty[key] = faulty.get(key, 0) + 1
@@ -358,6 +442,8 @@ def run_stream(source: Source, sink, sf: StreamingFilter, parser: PacketParser, 
         sink.write(rec)
     sink.close()
     out = {"packets": n, **{k: v for k, v in counts.items() if v}}
+    if n_handover:
+        out["handover"] = n_handover
     dropped = source.count_dropped()
     if dropped is not None:
         out["dropped"] = dropped

@@ -1,5 +1,6 @@
 """What every packet source is (``Source``) and what it may hand over besides a packet: an
-``Oversized`` one, or one from a ``Foreign`` sender."""
+``Oversized`` one, one from a ``Foreign`` sender, or the first from the stream's robot on a new
+address (``Handover``)."""
 
 from __future__ import annotations
 
@@ -22,8 +23,22 @@ class Foreign:
     sender: str
 
 
+@dataclass
+class Handover:
+    """The first packet of the stream's robot from a new address: the sender fell silent for
+    ``silence_s`` seconds and the same host came back on a new port (a restarted robot), so
+    ``sender`` (``HOST:PORT``) is the stream's sender from now on, instead of ``previous``.
+    ``data``: the packet, or ``Oversized`` when it was longer than the source's limit."""
+
+    data: bytes | Oversized
+    sender: str
+    previous: str
+    silence_s: float
+
+
 class Source:
-    """Yields ``bytes`` (one packet each) or ``Packet``s; ``None`` on a read timeout.
+    """Yields ``bytes`` (one packet each) or ``Packet``s; ``None`` on a read timeout; an
+    ``Oversized``, ``Foreign`` or ``Handover`` item for what is not simply the next packet.
 
     ``dropped``: packets the operating system dropped before they could be read, where it
     says (else ``None``); ``foreign``: packets not used per other sender."""
@@ -34,7 +49,7 @@ class Source:
 
     def open(self) -> None: ...
 
-    def read(self, timeout: float) -> bytes | Packet | Oversized | Foreign | None:
+    def read(self, timeout: float) -> bytes | Packet | Oversized | Foreign | Handover | None:
         raise NotImplementedError
 
     def count_dropped(self) -> int | None:
