@@ -3,6 +3,14 @@
     python export_loader.py step.jaxexport < packets.jsonl > estimates.jsonl
     python export_loader.py step.jaxexport --udp 0.0.0.0:5005 --sink 127.0.0.1:5006
 
+Over ``--udp`` it takes packets from one sender, as ``kckf stream`` does: the first heard
+(named on stderr) or those ``--allow-from HOST[:PORT]`` names; another sender's packet gets
+``{"t": null, "status": "foreign", "note": "from HOST:PORT"}`` and changes nothing. A robot that
+restarts and comes back from the same host on a new port is taken back once the sender has
+been silent for ``--handover-after`` seconds (default 0.5; ``inf``: never): named on stderr
+and in the record (``"handover": "HOST:OLD -> HOST:NEW"``), the step restarted if the robot's
+clock started again (status ``gap``, ``"gap": "restart"``).
+
 As a library::
 
     low_latency()   # optional, once, before the first computation: one packet at a time
@@ -34,14 +42,33 @@ import numpy as np
 LOW_LATENCY_XLA_FLAGS = "--xla_cpu_multi_thread_eigen=false"
 
 
+#: XLA's option that compiles a while loop as one kernel (the exported step is one pass of a
+#: loop, so that it runs as one kernel rather than about ninety: 3-4x faster per packet); jax
+#: 0.12's XLA does so by default, jax 0.10's for loops under 1 KiB unless told.
+LOOP_OPTION = "xla_cpu_small_while_loop_byte_threshold"
+
+
 def low_latency() -> None:
     """Settings for one packet at a time, for the process (importing this file changes
     nothing; ``main`` calls this): synchronous dispatch, and if no JAX computation has run yet,
-    XLA's kernels on the calling thread (``LOW_LATENCY_XLA_FLAGS``)."""
+    XLA's kernels on the calling thread (``LOW_LATENCY_XLA_FLAGS``) and the step compiled as
+    one kernel (``LOOP_OPTION``, unless ``XLA_FLAGS`` sets it already)."""
     jax.config.update("jax_cpu_enable_async_dispatch", False)
     flags = os.environ.get("XLA_FLAGS", "")
     if LOW_LATENCY_XLA_FLAGS not in flags:
-        os.environ["XLA_FLAGS"] = (flags + " " + LOW_LATENCY_XLA_FLAGS).strip()
+        flags = (flags + " " + LOW_LATENCY_XLA_FLAGS).strip()
+    if LOOP_OPTION not in flags:
+        extra = "--xla_backend_extra_options="
+        entry = f"{LOOP_OPTION}={1 << 40}"
+        at = flags.rfind(extra)
+        if at < 0:
+            flags = f"{flags} {extra}{entry}"
+        else:  # a comma-separated list: add to it
+            end = flags.find(" ", at)
+            end = len(flags) if end < 0 else end
+            sep = "," if end > at + len(extra) else ""
+            flags = flags[:end] + sep + entry + flags[end:]
+    os.environ["XLA_FLAGS"] = flags
 
 
 MAGIC = b"KCKF-JAXEXPORT/1\n"
@@ -83,6 +110,7 @@ class ExportedStep:
         self.max_predict_s = float(max_predict_s if max_predict_s is not None
                                    else gaps.get("max_predict_s", 1.0))
         self._x = np.empty(h["x_size"], self.dtype)
+        self._K = len(h["angle_names"])
         self.reset()
 
     def reset(self) -> None:
@@ -97,7 +125,7 @@ class ExportedStep:
                                                                    self._x)
         state, out = self._call(*args)
         out = np.asarray(out)
-        K = len(self.header["angle_names"])
+        K = self._K
         if out[2 * K] < 0.5:
             return None
         self.state = state
@@ -163,8 +191,10 @@ class ExportedStep:
         angles, status, extra = self._push(t, x)
         if angles is not None:
             kinds = self.header.get("fault_kinds", [])
-            faulty = sorted(faulty + [(int(i), f"{self.names[i]} {kinds[c - 1]}")
-                                      for i, c in enumerate(self.codes) if 0 < c <= len(kinds)])
+            if self.codes.any():
+                faulty = sorted(faulty + [(i, f"{self.names[i]} {kinds[c - 1]}")
+                                          for i, c in enumerate(self.codes.tolist())
+                                          if 0 < c <= len(kinds)])
         rec: dict = {"t": t}
         if angles is not None:
             rec.update({n: float(a) for n, a, e in zip(self.header["angle_names"], angles,
@@ -202,6 +232,92 @@ class ExportedStep:
             return {"t": None, "status": "malformed"}
 
 
+def parse_allow_from(values):
+    """``--allow-from HOST[:PORT]`` values as ``(address, port or None)`` (a host name looked
+    up once, here), or None when none were given; ValueError for a bad one."""
+    if not values:
+        return None
+    import socket
+
+    out = []
+    for v in values:
+        host, sep, port = v.rpartition(":")
+        if not sep:
+            host, port = v, ""
+        try:
+            number = int(port) if port else None
+            if number is not None and not 0 < number < 65536:
+                raise ValueError
+            out.append((socket.gethostbyname(host), number))
+        except (ValueError, OSError):
+            raise ValueError(f"--allow-from {v!r}: expected HOST or HOST:PORT (PORT 1-65535) "
+                             "of a host that resolves") from None
+    return out
+
+
+class Senders:
+    """One robot per stream, ``kckf stream``'s rules for a UDP socket: ``take(addr, now)``
+    says what a datagram from ``addr`` read at ``now`` (``time.monotonic``) is.
+
+    ``"sender"``: the stream's robot. ``"first"``: the first sender heard (without
+    ``allow_from``), the robot from now on. ``"handover"``: the robot's host on a new port
+    after the robot was silent for ``handover_s`` or more (a restarted robot): the robot from
+    now on, its previous address no longer (``handovers`` lists them, ``silence_s`` says how
+    long), unless that port was heard while the robot was still sending (another sender).
+    ``"foreign"``: anyone else (counted in ``foreign``). With ``allow_from`` (``(address,
+    port or None)``, ``parse_allow_from``) those are the robot, and there is no handover."""
+
+    def __init__(self, allow_from=None, handover_s: float = 0.5):
+        self.allow_from = allow_from
+        self.handover_s = float(handover_s)
+        self.sender = None
+        self.heard = -math.inf
+        self.silence_s = 0.0
+        self.foreign: dict[str, int] = {}
+        self.handovers: list[tuple[str, str]] = []
+        self.first_foreign: dict = {}  # when each foreign address was first heard
+
+    def take(self, addr, now: float) -> str:
+        if addr == self.sender:
+            self.heard = now
+            return "sender"
+        if self.allow_from is not None:
+            if any(addr[0] == h and p in (None, addr[1]) for h, p in self.allow_from):
+                return "sender"
+        elif self.sender is None:
+            self.sender, self.heard = addr, now
+            return "first"
+        elif (addr[0] == self.sender[0] and now - self.heard >= self.handover_s
+              and self.first_foreign.get(addr, math.inf) > self.heard):
+            # (a port heard while the robot was still sending is another sender)
+            self.handovers.append((_name(self.sender), _name(addr)))
+            self.silence_s = now - self.heard
+            self.sender, self.heard = addr, now
+            return "handover"
+        name = _name(addr)
+        self.foreign[name] = self.foreign.get(name, 0) + 1
+        self.first_foreign.setdefault(addr, now)
+        return "foreign"
+
+
+def _name(addr) -> str:
+    return f"{addr[0]}:{addr[1]}"
+
+
+def packet_t(data: bytes):
+    """A packet's ``t`` as ``ExportedStep.handle`` reads it, or None where it has none."""
+    if len(data) > MAX_PACKET_BYTES:
+        return None
+    try:
+        packet = json.loads(data.decode("utf-8"))
+    except (UnicodeDecodeError, ValueError, RecursionError):
+        return None
+    t = packet.get("t") if isinstance(packet, dict) else None
+    if isinstance(t, bool) or not isinstance(t, int | float) or not math.isfinite(t):
+        return None
+    return float(t)
+
+
 def main(argv=None) -> int:
     import argparse
 
@@ -212,7 +328,21 @@ def main(argv=None) -> int:
     ap.add_argument("--idle-timeout", type=float, default=None)
     ap.add_argument("--gap", type=float, default=None, help="gap threshold, s (from the export)")
     ap.add_argument("--on-gap", choices=("predict", "restart"), default=None)
+    ap.add_argument("--allow-from", action="append", metavar="HOST[:PORT]",
+                    help="--udp: the sender to take packets from (repeatable); default: the "
+                         "first heard; others get the status foreign")
+    ap.add_argument("--handover-after", type=float, default=0.5, metavar="SEC",
+                    help="--udp: once the sender has been silent this long, a packet from its "
+                         "host on a new port (a restarted robot) makes that port the sender "
+                         "(default 0.5 s; inf: never); a second sender while the first is "
+                         "live stays foreign")
     args = ap.parse_args(argv)
+    if not args.handover_after >= 0:
+        ap.error(f"--handover-after {args.handover_after!r}: expected 0 or more (inf: never)")
+    try:
+        allow_from = parse_allow_from(args.allow_from)
+    except ValueError as exc:
+        ap.error(str(exc))
     low_latency()  # before the first computation
     step = ExportedStep(args.path, gap_s=args.gap, on_gap=args.on_gap)
     if args.udp is None:
@@ -220,6 +350,7 @@ def main(argv=None) -> int:
             print(json.dumps(step.handle(line.rstrip("\n"))), flush=True)
         return 0
     import socket
+    import time
 
     host, port = args.udp.rsplit(":", 1)
     rx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -234,12 +365,51 @@ def main(argv=None) -> int:
     step.push_array(0.0, np.zeros(len(step.names)))  # compile before the first packet
     step.reset()
     print(f"export_loader: listening on udp://{host}:{port}", file=sys.stderr, flush=True)
+    senders = Senders(allow_from, args.handover_after)
+    n = n_foreign = 0
+    clock_check = None  # the last handover, until a packet with a usable t has followed it
     while True:
         try:
-            data = rx.recv(65536)
+            data, addr = rx.recvfrom(65536)
         except TimeoutError:
+            print(f"export_loader: packets {n}, foreign {n_foreign}, handover "
+                  f"{len(senders.handovers)}", file=sys.stderr, flush=True)
             return 0
-        rec = json.dumps(step.handle(data))
+        n += 1
+        kind = senders.take(addr, time.monotonic())
+        if kind == "foreign":
+            n_foreign += 1
+            out = {"t": None, "status": "foreign", "note": f"from {_name(addr)}"}
+        else:
+            mark = note = None  # the handover this record names, and what it says of it
+            if kind == "first":
+                print(f"export_loader: taking packets from {_name(addr)} (the first sender "
+                      "heard; --allow-from chooses)", file=sys.stderr, flush=True)
+            elif kind == "handover":
+                previous, new = senders.handovers[-1]
+                clock_check = mark = f"{previous} -> {new}"
+                note = (f"sender {previous} silent {senders.silence_s:.2f} s; taking {new} "
+                        "(same host) as the same robot")
+                print(f"export_loader: {note}", file=sys.stderr, flush=True)
+            restart = False
+            if clock_check is not None:
+                t = packet_t(data)
+                if t is not None:
+                    t_prev = step.t_prev
+                    if t_prev is not None and not t > t_prev:  # its clock started again
+                        step.reset()
+                        restart, mark = True, clock_check
+                        note = "; ".join((note or f"after the handover {clock_check}",
+                                          f"its clock started again (t = {t!r}, previous "
+                                          f"t = {t_prev!r}): step restarted"))
+                    clock_check = None
+            out = step.handle(data)
+            if mark is not None:
+                out["handover"] = mark
+                out["note"] = " | ".join(x for x in (out.get("note"), note) if x)
+                if restart and out["status"] in ("ok", "masked"):
+                    out["status"], out["gap"] = "gap", "restart"
+        rec = json.dumps(out)
         if sink:
             tx.sendto(rec.encode(), sink)
         else:
