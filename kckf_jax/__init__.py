@@ -36,10 +36,11 @@ The public API (everything else lives in private modules; docs/architecture.md m
   ``FitResult``, ``FitInterrupted``, ``initial_params``, ``loss_fn``, ``make_batch`` (and its
   ``Batch``), ``shard_batch``;
 * live filtering and deployment: ``StreamingFilter``, ``PacketParser``, ``Packet``,
-  ``STATUSES``, ``low_latency``, ``export_step``; where packets come from and go
-  (``Source``, which hands over packets, ``Oversized`` ones and ``Foreign`` ones from another
-  sender; ``open_source``, ``open_sink``, ``run_stream``; the Lab Streaming Layer's
-  ``LslSource`` and ``LslSink``, and ``lsl_loopback_config`` to keep LSL on this machine);
+  ``STATUSES``, ``low_latency``, ``export_step``; where packets come from and go (``Source``,
+  which hands over packets, ``Oversized`` ones, ``Foreign`` ones from another sender and the
+  ``Handover`` of a robot back on a new address; ``open_source``, ``open_sink``,
+  ``run_stream``; the Lab Streaming Layer's ``LslSource`` and ``LslSink``, and
+  ``lsl_loopback_config`` to keep LSL on this machine);
 * faulty readings (what the step does not use, and why): ``FAULT_KINDS``,
   ``fault_stretches`` (``Estimate.faults`` by column, kind and time); ``FaultPolicy`` (what
   the health monitor's findings do: ``isolate``, ``report`` or ``off``; ``FAULT_POLICIES``,
@@ -138,6 +139,7 @@ from ._smooth import smooth as smooth
 from ._smooth import smooth_batch as smooth_batch
 from ._stream import STATUSES as STATUSES
 from ._stream import Foreign as Foreign
+from ._stream import Handover as Handover
 from ._stream import LslSink as LslSink
 from ._stream import LslSource as LslSource
 from ._stream import Oversized as Oversized

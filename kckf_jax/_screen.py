@@ -75,10 +75,8 @@ def screen(params, gyro, hall_v, xp=jnp) -> Screened:
     if coeffs is None:
         angle = xp.zeros_like(hall_v)
     elif xp is np:
-        (w1, w2), (k1, k2) = hall_exponentials(*(np.asarray(c, np.float64) for c in coeffs))
         finite_v = np.where(np.isfinite(hall_v), hall_v, 0.5 * (lo + hi))
-        with np.errstate(over="ignore", invalid="ignore"):
-            angle = w1 * np.exp(k1 * finite_v) + w2 * np.exp(k2 * finite_v)
+        angle = _np_angle(coeffs, finite_v)
     else:
         coeffs = tuple(jax.lax.stop_gradient(c) for c in coeffs)
         finite_v = jnp.where(jnp.isfinite(hall_v), hall_v, 0.5 * (lo + hi))
@@ -90,6 +88,80 @@ def screen(params, gyro, hall_v, xp=jnp) -> Screened:
     g_used = xp.where(g_code > 0, xp.nan, gyro)
     h_used = xp.where(h_code > 0, xp.nan, hall_v)
     return Screened(g_used, h_used, g_code.astype(xp.int8), h_code.astype(xp.int8))
+
+
+def _np_angle(coeffs, v):
+    """Eq. 1 in NumPy float64 (``screen``'s host arithmetic)."""
+    (w1, w2), (k1, k2) = hall_exponentials(*(np.asarray(c, np.float64) for c in coeffs))
+    with np.errstate(over="ignore", invalid="ignore"):
+        return w1 * np.exp(k1 * v) + w2 * np.exp(k2 * v)
+
+
+#: How far inside the joints' range ``clean_bounds`` keeps its ends (relative): far above
+#: float64's rounding of Eq. 1, far below anything a reading could tell apart.
+CLEAN_MARGIN = 1e-9
+
+
+def clean_bounds(params) -> tuple[np.ndarray, np.ndarray]:
+    """Per reading (``Robot.gyro_names`` then ``Robot.hall_names``) a closed interval
+    ``[lo, hi]`` (float64) inside which ``screen`` (``xp=np``) finds nothing wrong with it: a
+    packet whose every reading lies in its interval, or is missing, needs no ``screen``. The
+    stream's check of one packet is then four NumPy calls instead of ``screen``'s forty
+    (``StreamingFilter``'s host path, ``PacketParser``); a reading outside is screened as
+    before, so the decisions are ``screen``'s exactly.
+
+    Shown, not sampled: a gyro is clean below its saturation (``SATURATION_FRACTION`` of its
+    full scale), a Hall reading strictly between the rails and where its angle through Eq. 1
+    is within the joints' range. Eq. 1 is strictly monotone for positive ``a, b, c, d``
+    (``_hall``), so the angle over ``[lo, hi]`` lies between the angles at its ends, which
+    are checked with ``screen``'s own arithmetic, ``CLEAN_MARGIN`` inside the range; a sensor
+    whose coefficients are not all positive gets an empty interval (each of its readings
+    screened).
+    """
+    limits = params.limits
+    G, M = len(params.robot.gyro_names), params.robot.n_hall
+    g = float(np.nextafter(SATURATION_FRACTION * limits.gyro_rad_s, 0.0))
+    v_lo, v_hi = limits.hall_v
+    rail = limits.rail_v
+    a = float(np.nextafter(v_lo + rail, np.inf))
+    b = float(np.nextafter(v_hi - rail, -np.inf))
+    h_lo, h_hi = np.full(M, a), np.full(M, b)
+    coeffs = params.hall_coeffs
+    if coeffs is not None:
+        cs = [np.broadcast_to(np.asarray(c, np.float64), (M,)) for c in coeffs]
+        reach = limits.joint_range_rad * (1.0 - CLEAN_MARGIN)
+        grid = np.linspace(a, b, 1025)
+        for m in range(M):
+            one = tuple(c[m] for c in cs)
+            ok = np.abs(_np_angle(one, grid)) <= reach
+            if not (all(c > 0 for c in one[:4]) and ok.any()):
+                h_lo[m], h_hi[m] = np.inf, -np.inf
+                continue
+            inside = np.flatnonzero(ok)
+            h_lo[m] = _edge(one, reach, grid, inside[0], -1)
+            h_hi[m] = _edge(one, reach, grid, inside[-1], +1)
+            ends = _np_angle(one, np.array([h_lo[m], h_hi[m]]))
+            if not np.all(np.abs(ends) <= reach):  # cannot happen for a monotone curve
+                h_lo[m], h_hi[m] = np.inf, -np.inf
+    return np.r_[np.full(G, -g), h_lo], np.r_[np.full(G, g), h_hi]
+
+
+def _edge(coeffs, reach, grid, i, step) -> float:
+    """The end of the clean stretch of one Hall sensor's voltages that starts at ``grid[i]``
+    (clean), towards ``step`` (-1: lower voltages): bisection between it and its neighbour."""
+    j = i + step
+    if not 0 <= j < len(grid):
+        return float(grid[i])
+    good, bad = float(grid[i]), float(grid[j])
+    for _ in range(80):
+        mid = 0.5 * (good + bad)
+        if mid in (good, bad):
+            break
+        if abs(float(_np_angle(coeffs, np.array([mid]))[0])) <= reach:
+            good = mid
+        else:
+            bad = mid
+    return good
 
 
 def stand_ins(robot, exact: bool = False) -> tuple[tuple[int, ...], ...]:

@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import types
 
 import jax.numpy as jnp
 import numpy as np
@@ -252,3 +253,47 @@ def test_a_recording_screened_once_is_not_judged_again(disconnected):
     np.testing.assert_array_equal(np.asarray(est.angles), np.asarray(ref.angles))
     np.testing.assert_array_equal(np.asarray(ref.faults), np.asarray(codes))
     assert est.faults is None
+
+
+@pytest.mark.parametrize("case", ["paper", "reversed_and_fitted", "no_curve", "tight_limits"])
+def test_clean_bounds_hold_only_clean_readings(case):
+    """``clean_bounds``: every reading inside its interval is one ``screen`` finds nothing
+    wrong with, and the intervals are tight (a reading 1e-6 of the range beyond an end is
+    judged faulty) for the paper's coefficients, sensors mounted the other way round with
+    other coefficients, no curve, and a narrow joint range with a small gyro range."""
+    from kckf_jax._limits import SensorLimits
+    from kckf_jax._screen import clean_bounds
+    from kckf_jax._stream._packets import host_screen
+
+    s = kk.simulate(ROBOT, "cyclic", seed=1, duration_s=1.0)
+    params = Params.paper_defaults(ROBOT, s.hall_models)
+    if case == "reversed_and_fitted":
+        models = {n: {**m, "sign": -m["sign"], "a": m["a"] * (1.3 + 0.1 * i),
+                      "d": m["d"] * (0.8 + 0.05 * i)}
+                  for i, (n, m) in enumerate(s.hall_models.items())}
+        params = Params.paper_defaults(ROBOT, models)
+    if case == "tight_limits":
+        params = dataclasses.replace(params, limits=SensorLimits(
+            hall_v=(0.2, 3.0), gyro_rad_s=2.0, joint_range_rad=0.6))
+    host = host_screen(params)
+    if case == "no_curve":
+        host = types.SimpleNamespace(robot=host.robot, limits=host.limits, hall_coeffs=None)
+    lo, hi = clean_bounds(host)
+    assert np.all(lo < hi)
+    G = len(ROBOT.gyro_names)
+    rng = np.random.default_rng(0)
+    x = rng.uniform(lo, hi, size=(20000, lo.size))
+    x[:2], x[2:4] = lo, hi  # the ends themselves
+    used = kk_screen(host, x[:, :G], x[:, G:])
+    assert not np.any(np.c_[used.gyro_code, used.hall_code])
+    width = hi - lo
+    for end, sign in ((lo, -1.0), (hi, 1.0)):
+        out = kk_screen(host, *np.split((end + sign * 1e-6 * width)[None], [G], axis=1))
+        assert np.all(np.c_[out.gyro_code, out.hall_code])
+
+
+def kk_screen(host, gyro, hall_v):
+    from kckf_jax._screen import screen
+
+    with np.errstate(invalid="ignore"):
+        return screen(host, gyro, hall_v, np)

@@ -400,3 +400,80 @@ def test_loader_and_stream_share_one_status_vocabulary(session, tmp_path):
         if a["status"] in USED:
             for n in ROBOT.angle_names:
                 assert a[n] == pytest.approx(b[n], abs=1e-4)  # float64 against float32
+
+
+def test_the_one_kernel_step_is_the_plain_step(monkeypatch):
+    """The stream's step runs as the one pass of an XLA while loop (``_one_kernel``: one
+    kernel on a CPU, not about ninety): over a session with faults, packet by packet, its
+    states and outputs are those of the same step called plainly (to float32 rounding; the
+    same faults named at the same packets); it is compiled as one
+    kernel here (the tests enable XLA's CPU loops, as the command does); and a packet whose
+    time step is not a number runs nothing (the state kept, ``ok = 0``)."""
+    import kckf_jax as kk
+    from kckf_jax._health import init_health
+    from kckf_jax._kernel import init_state
+    from kckf_jax._stream import _filter
+
+    s = simulate(ROBOT, "cyclic", seed=2, duration_s=12.0, device_seed=2, drop_prob=0.02)
+    bad = kk.inject_faults(s, [kk.Fault.parse(x) for x in (
+        "noise:hall2_y_r@3-5=0.5", "bias_step:gyro3_x@6=0.2", "disconnect:hall4_y_l@8-10")])
+    params = Params.paper_defaults(ROBOT, bad.hall_models, dtype=jnp.float32)
+    fn, flatten, _ = _filter.stream_step_fn(params, "kckf", health=True)
+    flat0 = flatten((init_state(params, "kckf"), init_health(ROBOT, params.log_q.dtype)))
+    x = np.c_[np.diff(bad.t, prepend=bad.t[0]), bad.gyro, bad.hall_v].astype(np.float32)
+    one = jax.jit(fn)
+    assert 'xla_cpu_small_call="true"' in one.lower(flat0, x[0]).compile().as_text()
+    one(flat0, x[0])  # traced before the plain step replaces the loop below
+    monkeypatch.setattr(_filter, "_one_kernel", lambda f, flat, x: f(flat, x))
+    plain = jax.jit(_filter.stream_step_fn(params, "kckf", health=True)[0])
+    assert 'xla_cpu_small_call="true"' not in plain.lower(flat0, x[0]).compile().as_text()
+    a = b = flat0
+    outs_a, outs_b = [], []
+    for row in x:
+        a, out_a = one(a, row)
+        b, out_b = plain(b, row)
+        outs_a.append(np.asarray(out_a))
+        outs_b.append(np.asarray(out_b))
+    outs_a, outs_b = np.array(outs_a), np.array(outs_b)
+    K = ROBOT.n_angles
+    # The same arithmetic, compiled otherwise: float32 rounding apart.
+    np.testing.assert_allclose(outs_a[:, :K], outs_b[:, :K], atol=1e-5)
+    np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-3, atol=1e-5)
+    codes_a, codes_b = outs_a[:, 2 * K + 1:], outs_b[:, 2 * K + 1:]
+    assert np.count_nonzero(codes_a) > 100  # the faults were judged on the way
+    np.testing.assert_array_equal(codes_a, codes_b)
+    nan_row = x[5].copy()
+    nan_row[0] = np.nan
+    kept, out = one(a, nan_row)
+    np.testing.assert_array_equal(np.asarray(kept), np.asarray(a))
+    assert np.asarray(out)[2 * ROBOT.n_angles] == 0.0
+
+
+def test_the_host_paths_quick_check_is_the_screen():
+    """A packet whose readings are all inside ``clean_bounds`` is not screened again on the
+    host path; one outside is: either way the record is the full check's (random packets
+    around the bounds' ends, a parser given the parameters and one without)."""
+    from kckf_jax._screen import clean_bounds
+
+    params = Params.paper_defaults(ROBOT, simulate(ROBOT, "cyclic", seed=1,
+                                                   duration_s=1.0).hall_models)
+    sf = StreamingFilter(params, host_path=True)
+    lo, hi = clean_bounds(sf._checker.params)
+    rng = np.random.default_rng(5)
+    seen = {True: 0, False: 0}
+    for parser in (PacketParser(ROBOT), PacketParser(ROBOT, params=params)):
+        for k in range(400):
+            width = hi - lo
+            x = rng.uniform(lo - 0.01 * width, hi + 0.01 * width)
+            x[rng.random(x.size) < 0.05] = np.nan
+            obj = {"t": 0.01 * k, **{n: None if np.isnan(v) else float(v)
+                                     for n, v in zip(ROBOT.gyro_names + ROBOT.hall_names, x)}}
+            pkt = parser.parse(json.dumps(obj).encode())
+            full = sf._checker.check(pkt)
+            clean = sf._clean(pkt)
+            seen[clean] += 1
+            if clean or parser.params is not None:  # nothing left for the check to change
+                assert (pkt.status, pkt.faults) == (full.status, full.faults)
+                np.testing.assert_array_equal(np.r_[pkt.gyro, pkt.hall_v],
+                                              np.r_[full.gyro, full.hall_v])
+    assert min(seen.values()) > 50

@@ -23,5 +23,6 @@ from ._packets import USED as USED
 from ._packets import Packet as Packet
 from ._packets import PacketParser as PacketParser
 from ._source import Foreign as Foreign
+from ._source import Handover as Handover
 from ._source import Oversized as Oversized
 from ._source import Source as Source

@@ -25,7 +25,7 @@ from .._kernel import (
 from .._model import structure
 from .._params import Params
 from .._paths import STEP_TOL_S, Steady, converged_map, readings_present, relative_change
-from .._screen import FAULT_KINDS, screen
+from .._screen import FAULT_KINDS, clean_bounds, screen
 from ._packets import USED, Packet, PacketParser
 
 #: Compiled once per parameter layout (``StreamingFilter.warmup`` compiles it up front).
@@ -177,6 +177,8 @@ class StreamingFilter:
         self._K = self.robot.n_angles
         self.names = self.robot.angle_names
         self._estimated = estimated(self.robot, method)
+        self._named = [(k, n) for k, (n, e) in enumerate(zip(self.names, self._estimated))
+                       if e]
         self._fn, self._flatten, self._unflatten = _compiled_step(params, method)
         self._x = np.empty(1 + self._G + self._M, dtype=self.dtype)
         self._fresh_health = init_health(self.robot, self.dtype)
@@ -188,6 +190,10 @@ class StreamingFilter:
         self._host_ok = (host_path and steady.model_reason(params, method) is None
                          and (params.effects is None or not params.effects.on))
         self._used = self.robot.used_gyro_index
+        # A packet whose readings all lie where ``screen`` finds nothing wrong needs no
+        # screening on the host path (``_screen.clean_bounds``).
+        self._clean_lo, self._clean_hi = clean_bounds(self._checker.params)
+        self._clean_x = np.empty(self._G + self._M)
         self._tol = steady.tol(self.dtype)
         # As in the batch steady path: at least its head of regular rows before switching.
         self._min_regular = steady.head_rows(self.dtype)
@@ -271,7 +277,7 @@ class StreamingFilter:
         """Filter one packet; returns the output record (``t``, angles in rad, ``status``)."""
         if pkt.status not in USED:
             return self._record(pkt.t, pkt.status, pkt.note)
-        if self._host is not None and not pkt.screened:
+        if self._host is not None and not pkt.screened and not self._clean(pkt):
             pkt = self._checker.check(pkt)  # the host path must see only usable readings
         if self.t_prev is not None and not pkt.t > self.t_prev:
             return self._record(pkt.t, "out_of_order",
@@ -295,9 +301,9 @@ class StreamingFilter:
             return self._record(pkt.t, "rejected", "the update was not finite; state kept")
         self.t_prev = pkt.t
         angles, codes = out
-        if codes is not None and codes.any():  # what the step did not use, named
-            bad = {self._fault_names[i]: FAULT_KINDS[codes[i] - 1]
-                   for i in map(int, np.flatnonzero(codes))}
+        if codes is not None:  # what the step did not use, named
+            bad = {self._fault_names[i]: FAULT_KINDS[int(c) - 1]
+                   for i, c in enumerate(codes) if c}
             new = {n: k for n, k in bad.items() if (pkt.faults or {}).get(n) != k}
             pkt.faults = {**(pkt.faults or {}), **bad}
             pkt.faulty = tuple(dict.fromkeys(pkt.faulty + tuple(bad)))
@@ -309,10 +315,18 @@ class StreamingFilter:
         rec.update(extra)
         return rec
 
-    def _run(self, dt: float, pkt: Packet) -> tuple[np.ndarray, np.ndarray | None] | None:
+    def _clean(self, pkt: Packet) -> bool:
+        """Whether ``screen`` would find nothing wrong with any of the packet's readings
+        (each inside ``_screen.clean_bounds``' interval, or missing)."""
+        x = self._clean_x
+        x[:self._G] = pkt.gyro
+        x[self._G:] = pkt.hall_v
+        return not (np.less(x, self._clean_lo) | np.greater(x, self._clean_hi)).any()
+
+    def _run(self, dt: float, pkt: Packet) -> tuple[np.ndarray | list, list | None] | None:
         """One step: on the host path when it applies, else on the device; the new state is
         kept only when it is finite. Returns the angles and each reading's fault code (the
-        device step's; ``None`` on the host path), or ``None``."""
+        device step's, where any is not 0; else ``None``), or ``None``."""
         if self._host is not None:
             angles = self._host.step(dt, pkt.gyro, pkt.hall_v)
             if angles is not None:
@@ -323,23 +337,28 @@ class StreamingFilter:
         x[1:1 + self._G] = pkt.gyro
         x[1 + self._G:] = pkt.hall_v
         state, out = self._fn(self._state, x)
-        out = np.asarray(out)
+        # One conversion to Python floats: NumPy's calls on a few numbers cost more than the
+        # numbers (a microsecond each).
+        out = np.asarray(out).tolist()
         K = self._K
         if out[2 * K] < 0.5:
             return None
         self._state = state
         if self._host_ok:
             self._watch(dt, pkt)
-        return out[:K], out[2 * K + 1:].astype(int)
+        codes = out[2 * K + 1:]
+        return out[:K], (codes if any(codes) else None)
 
     def _record(self, t, status, note="", angles=None) -> dict:
         rec: dict = {"t": t}
         if angles is not None:
-            values = angles.tolist()
+            values = angles.tolist() if isinstance(angles, np.ndarray) else angles
             # An angle not estimated yet (a Hall baseline before its first reading) is left
             # out, as one the method never estimates.
-            rec.update((n, a) for n, a, e in zip(self.names, values, self._estimated)
-                       if e and math.isfinite(a))
+            for k, n in self._named:
+                a = values[k]
+                if math.isfinite(a):
+                    rec[n] = a
         rec["status"] = status
         if note:
             rec["note"] = note
@@ -380,7 +399,7 @@ def stream_step_fn(params: Params, method: str, health: bool = False):
         return jnp.concatenate([jnp.ravel(leaf).astype(dtype)
                                 for leaf in jax.tree_util.tree_leaves(state)])
 
-    def fn(flat, x, p=params):
+    def one(flat, x, p):
         state = unflatten(flat)
         inputs = SensorSeries(x[0], x[1:1 + G], x[1 + G:])
         if health:
@@ -399,7 +418,38 @@ def stream_step_fn(params: Params, method: str, health: bool = False):
             out.append(codes.astype(x.dtype))
         return flatten(new), jnp.concatenate(out)
 
+    def fn(flat, x, p=params):
+        return _one_kernel(lambda s, y: one(s, y, p), flat, x)
+
     return fn, flatten, unflatten
+
+
+def _one_kernel(fn, flat, x):
+    """``fn(flat, x)`` as the one pass of an XLA while loop, so that XLA's CPU compiles the
+    whole step as one kernel.
+
+    Outside a loop, XLA's CPU runtime runs a program kernel by kernel ("thunks"), and each
+    costs about half a microsecond to launch whatever it computes: the step with the sensors'
+    health is about 90 kernels of a few numbers each (``python benchmarks/stream_latency.py
+    --parts``). A while loop whose body has no dot, custom call or collective is compiled as
+    one function instead (``_cpu_loops``: on jax 0.10 once ``enable_cpu_loops()`` has run, on
+    0.12 by default). The loop runs once, and not at all for a packet whose time step is not
+    a number (the state kept, ``ok = 0``: what the step says of a non-finite update); the
+    readings pass through the loop's carry so that XLA cannot move their arithmetic out of
+    the loop (its invariant code motion), where it would be kernels again. The same
+    arithmetic either way, compiled otherwise: equal to float32 rounding, the same faults
+    named (tests/test_stream.py)."""
+    out = jax.eval_shape(fn, flat, x)[1]
+
+    def body(carry):
+        go, s, y, _ = carry
+        s, o = fn(s, y)
+        return jnp.zeros_like(go), s, jnp.where(go, y, jnp.nan), o
+
+    go = ~jnp.isnan(x[0])
+    _, flat, _, o = jax.lax.while_loop(lambda c: c[0], body,
+                                       (go, flat, x, jnp.zeros(out.shape, out.dtype)))
+    return flat, o
 
 
 def _compiled_step(params: Params, method: str):

@@ -16,7 +16,7 @@ import numpy as np
 
 from .._limits import SensorLimits
 from .._robot import Robot
-from .._screen import FAULT_KINDS, screen
+from .._screen import FAULT_KINDS, clean_bounds, screen
 
 #: Every ``status`` an output line can carry (``kckf stream`` and ``export_loader.py`` alike).
 #: Used packets: ``ok`` (absent readings, a missing key, ``null`` or NaN, are missing
@@ -91,6 +91,8 @@ class PacketParser:
         # What ``screen`` reads of the parameters, as NumPy (a JAX leaf per packet would cost
         # a dispatch each: ``Params.hall_coeffs`` is computed from the learned logs).
         self.params = None if params is None else host_screen(params)
+        # Where ``screen`` finds nothing wrong with a reading: a packet inside needs no screen.
+        self._clean = None if params is None else clean_bounds(self.params)
         limits = self.limits
         self._names = robot.gyro_names + robot.hall_names
         self._slots = set(self._names)
@@ -160,7 +162,12 @@ class PacketParser:
         fine), fill ``pkt`` and set its status and note."""
         problems = list(problems)
         kinds = {i: "not_a_number" for i, _ in problems}
-        if self.params is not None:
+        if self._clean is not None and not problems and not (
+                np.less(arr, self._clean[0]) | np.greater(arr, self._clean[1])).any():
+            pkt.gyro[:] = arr[: self._G]  # every reading clean or missing: screen says so
+            pkt.hall_v[:] = arr[self._G:]
+            pkt.screened = True
+        elif self.params is not None:
             with np.errstate(invalid="ignore"):
                 used = screen(self.params, arr[: self._G], arr[self._G:], np)
             codes = np.r_[used.gyro_code, used.hall_code]
