@@ -126,17 +126,20 @@ class PacketParser:
             return self.empty("missing_t", "no 't'")
         if isinstance(t, bool) or not isinstance(t, int | float) or not math.isfinite(t):
             return self.empty("bad_t", f"t = {str(t)[:40]!r} is not a finite number")
-        pkt = self.empty("ok", t=float(t))
         values = [obj.get(name) for name in self._names]
         try:  # fast path: numbers and nulls (None becomes NaN)
-            if any(type(v) is bool for v in values):
+            if bool in map(type, values):
                 raise TypeError
             arr = np.array(values, dtype=np.float64)
             problems = []
         except (TypeError, ValueError, OverflowError):
             arr, problems = self._slow_values(values)
+        if arr.shape != (self._G + self._M,):  # lists of one length each: not readings
+            arr, problems = self._slow_values(values)
+        # The packet's readings are views of ``arr``, which is this packet's own.
+        pkt = Packet(float(t), arr[: self._G], arr[self._G:], "ok")
         extra = ""
-        if len(obj) - 1 > sum(1 for name in self._names if name in obj):
+        if len(obj) - 1 > len(self._slots.intersection(obj)):
             unknown = [k for k in obj if k != "t" and k not in self._slots]
             extra = "ignored unknown key(s) " + ", ".join(repr(k[:30]) for k in unknown[:4])
         return self._finish(pkt, arr, problems, extra)
@@ -179,11 +182,12 @@ class PacketParser:
             pkt.hall_v[:] = used.hall_v
             pkt.screened = True
         else:
-            bad = ~(np.isnan(arr) | ((arr >= self._lo) & (arr <= self._hi)))
-            problems += [(i, f"{self._names[i]} = {arr[i]:.6g} out of range")
-                         for i in map(int, np.flatnonzero(bad))]
-            kinds.update((i, "out_of_range") for i in map(int, np.flatnonzero(bad)))
-            arr[bad] = np.nan
+            bad = np.less(arr, self._lo) | np.greater(arr, self._hi)  # NaN (missing): fine
+            if bad.any():
+                out = [int(i) for i in np.flatnonzero(bad)]
+                problems += [(i, f"{self._names[i]} = {arr[i]:.6g} out of range") for i in out]
+                kinds.update((i, "out_of_range") for i in out)
+                arr[bad] = np.nan
             pkt.gyro[:] = arr[: self._G]
             pkt.hall_v[:] = arr[self._G:]
         notes = []
