@@ -2,7 +2,7 @@
 
     python benchmarks/clean_monitor.py [--sessions 20] [--duration 30] [--steps 30]
                                        [--cases all|quick] [--only WORDS] [--method M]
-                                       [--json OUT]
+                                       [--json [OUT]] [--quick]
 
 A monitor exists to make the estimates better; on a clean session it must take nothing out
 for more than a moment and cost nothing. Per case (kinematics, joint layout, kind of motion,
@@ -12,8 +12,12 @@ joint range, method, parameters) ``--sessions`` clean simulated sessions of one 
 fit (``--steps`` Adam steps, ``FitConfig`` defaults otherwise) on two other trials of the
 same robot. Reported per case: the monitor's findings per hour (readings it would isolate,
 by kind), the mean RMSE with ``isolate`` over ``off`` (mean and the worst session), and the
-model-mismatch warnings (``pair_mismatch``) the report gives. ``--cases quick`` is the
-smoke run the long tests execute (one small case, two sessions).
+model-mismatch warnings (``pair_mismatch``) the report gives. ``--json OUT`` writes the rows
+to ``OUT`` (after each case); ``--json`` alone prints them as one line of JSON at the end of
+stdout (the per-case lines go to stderr then). ``--quick`` is the smoke run the long tests
+execute: ``--cases quick`` (three small cases that between them take every value of each of
+the case's parts but one, a fit of ``kckf3d``, whose gradient takes about a minute to compile on
+two cores; two 10 s sessions each) with 2 Adam steps per fit; the figures mean nothing.
 """
 
 from __future__ import annotations
@@ -38,6 +42,8 @@ def cases(which: str):
     """``(kinematics, joints, kind, range_deg, method, params)`` per case."""
     if which == "quick":
         yield ("exact", "x,y,x,y", "walking", None, "kckf", "paper")
+        yield ("linear", "x,y,z", "human", 140.0, "kckf", "fitted")
+        yield ("exact", "xyz,xyz,xyz", "cyclic", 140.0, "kckf3d", "paper")
         return
     for reach, kin, joints, kind in itertools.product(
             (140.0, None), ("exact", "linear"), ("x,y,x,y", "x,y,z", "xyz,xyz,xyz"),
@@ -101,8 +107,18 @@ def main(argv=None) -> int:
     ap.add_argument("--cases", choices=("all", "quick"), default="all")
     ap.add_argument("--only", help="words of the case's label (all of them) to run only those")
     ap.add_argument("--method", choices=("kckf", "kckf3d"), help="only this method's cases")
-    ap.add_argument("--json", help="write the rows to this file")
+    ap.add_argument("--json", nargs="?", const="-",
+                    help="write the rows to this file; without one, print them as JSON (one "
+                         "line, the last on stdout)")
+    ap.add_argument("--quick", action="store_true",
+                    help="a smoke run on tiny sizes (the long tests run it): the figures mean "
+                         "nothing; --cases quick (three cases, not a fit of kckf3d), 2 Adam "
+                         "steps")
     args = ap.parse_args(argv)
+    if args.quick:
+        args.cases, args.steps = "quick", 2
+    to_stdout = args.json == "-"
+    log = sys.stderr if to_stdout else sys.stdout
     n = 2 if args.cases == "quick" else args.sessions
     duration = 10.0 if args.cases == "quick" else args.duration
     rows = []
@@ -119,12 +135,17 @@ def main(argv=None) -> int:
         print(f"{label:50s} per h {row['isolated_per_hour']} off {row['rmse_off_deg']:.3f} "
               f"isolate/off mean {row['ratio_mean']:.4f} worst {row['ratio_worst']:.4f} "
               f"(seed {row['worst_seed']}) mismatch {row['sessions_with_mismatch_warning']}/"
-              f"{n} [{row['seconds']} s]", flush=True)
-        if args.json:
+              f"{n} [{row['seconds']} s]", file=log, flush=True)
+        if args.json and not to_stdout:
             with open(args.json, "w") as f:
                 json.dump(rows, f, indent=1)
-    worst = max(r["ratio_worst"] for r in rows)
-    print(f"worst session isolate/off over every case: {worst:.4f}")
+    if rows:
+        worst = max(r["ratio_worst"] for r in rows)
+        print(f"worst session isolate/off over every case: {worst:.4f}", file=log)
+    else:
+        print("no case matches --only/--method", file=log)
+    if to_stdout:
+        print(json.dumps(rows), flush=True)
     return 0
 
 

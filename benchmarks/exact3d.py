@@ -1,7 +1,7 @@
 """The rotation-aware KCKF (``kckf3d``) against the linear KCKF in the same run: a batch of
 recorded-like trials, one fitting step, one trial, and an hour in float32.
 
-    python benchmarks/exact3d.py [--json] [--trials 64] [--rows 10000] [--hour]
+    python benchmarks/exact3d.py [--json] [--trials 64] [--rows 10000] [--hour] [--quick]
 
 Data: the project's simulator, exact-rotation walking of the 3D layout ``xyz,xyz,xyz``,
 recorded-like (jittered stamps, 1 % of readings missing, the voltage noise model of
@@ -11,6 +11,9 @@ recorded-like (jittered stamps, 1 % of readings missing, the voltage noise model
 step is ``fit``'s own (RMSE loss, gradient, Adam update; 4 steps, the first compiles; the
 median of the other 3). ``--hour``: one hour of walking in float32 and float64: finite, the
 covariance's smallest eigenvalue, the largest float32 - float64 difference and the RMSE.
+``--quick``: a smoke run on tiny sizes that the long tests run (one trial of 300 rows, one timed
+call, 2 fitting steps of the linear KCKF only, as ``kckf3d``'s gradient takes about a minute to
+compile on two cores, and ``--hour``'s section on 5 s): the figures mean nothing.
 """
 
 from __future__ import annotations
@@ -62,7 +65,7 @@ def timed(f, repeats: int = 3) -> tuple[float, float]:
     return first, float(np.median(times))
 
 
-def batch_case(trials: int, rows: int) -> dict:
+def batch_case(trials: int, rows: int, repeats: int = 3) -> dict:
     ss = sessions(trials, rows)
     params = initial_params(ss, FitConfig(), jnp.float32)
     series = pad_series([session_series(s, np.float64) for s in ss])
@@ -70,29 +73,31 @@ def batch_case(trials: int, rows: int) -> dict:
     out = {}
     for method in ("kckf", "kckf3d"):
         est = filter_batch(params, series, method)
-        first, med = timed(lambda m=method: filter_batch(params, series, m).angles)
+        first, med = timed(lambda m=method: filter_batch(params, series, m).angles, repeats)
         out[method] = {"path": est.path, "compile_and_first_s": round(first, 2),
                        "run_s": round(med, 3)}
     out["ratio"] = round(out["kckf3d"]["run_s"] / out["kckf"]["run_s"], 1)
     return out
 
 
-def fit_case(trials: int, rows: int) -> dict:
+def fit_case(trials: int, rows: int, steps: int = 4,
+             methods: tuple[str, ...] = ("kckf", "kckf3d")) -> dict:
     ss = sessions(trials, rows)
     out = {}
-    for method in ("kckf", "kckf3d"):
+    for method in methods:
         stamps = []
         t0 = time.perf_counter()
-        fit(ss, (), FitConfig(steps=4, method=method), dtype=jnp.float32,
+        fit(ss, (), FitConfig(steps=steps, method=method), dtype=jnp.float32,
             callback=lambda r, stamps=stamps: stamps.append(time.perf_counter()))
         out[method] = {"compile_and_first_s": round(stamps[0] - t0, 2),
                        "step_s": round(float(np.median(np.diff(stamps))), 3)}
-    out["ratio"] = round(out["kckf3d"]["step_s"] / out["kckf"]["step_s"], 1)
+    if len(methods) == 2:
+        out["ratio"] = round(out["kckf3d"]["step_s"] / out["kckf"]["step_s"], 1)
     return out
 
 
-def hour_case() -> dict:
-    (s,) = [simulate(SPEC, "walking", seed=7, duration_s=3600.0, drop_prob=0.01,
+def hour_case(duration_s: float = 3600.0) -> dict:
+    (s,) = [simulate(SPEC, "walking", seed=7, duration_s=duration_s, drop_prob=0.01,
                      kinematics="exact")]
     out, angles = {}, {}
     jax.config.update("jax_enable_x64", True)  # the last case: float64 for the reference run
@@ -122,13 +127,23 @@ def main() -> int:
     ap.add_argument("--trials", type=int, default=64)
     ap.add_argument("--rows", type=int, default=10_000)
     ap.add_argument("--hour", action="store_true")
+    ap.add_argument("--quick", action="store_true",
+                    help="a smoke run on tiny sizes (the long tests run it): the figures mean "
+                         "nothing; every section, but the fitting step of the linear KCKF only "
+                         "(kckf3d's gradient takes about a minute to compile)")
     args = ap.parse_args()
+    repeats, fit_steps, fit_methods, hour_s = 3, 4, ("kckf", "kckf3d"), 3600.0
+    if args.quick:
+        args.trials, args.rows, args.hour = 1, 300, True
+        repeats, fit_steps, fit_methods, hour_s = 1, 2, ("kckf",), 5.0
     out = {"machine": machine(), "layout": SPEC, "trials": args.trials, "rows": args.rows,
-           "filter": batch_case(args.trials, args.rows),
-           "fit_step": fit_case(args.trials, args.rows)}
-    out["one_trial"] = batch_case(1, args.rows)
+           "filter": batch_case(args.trials, args.rows, repeats),
+           "fit_step": fit_case(args.trials, args.rows, fit_steps, fit_methods)}
+    out["one_trial"] = batch_case(1, args.rows, repeats)
     if args.hour:
-        out["hour"] = hour_case()
+        out["hour"] = hour_case(hour_s)
+    if args.quick:
+        out["quick"] = True
     if args.json:
         print(json.dumps(out, indent=1))
     else:

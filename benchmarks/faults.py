@@ -1,7 +1,8 @@
 """Sensor faults: what each does to the KCKF's error, and whether it is named.
 
     python benchmarks/faults.py [--seeds 1,2,3] [--steps 60] [--json]
-    python benchmarks/faults.py --exact [--seeds 1,2]
+    python benchmarks/faults.py --exact [--seeds 1,2] [--json]
+    python benchmarks/faults.py --quick [--json]
 
 Sessions: ``kckf simulate --kind cyclic --duration 60 --joints x,y,x,y`` for each seed (its
 own robot: ``device_seed`` = seed), each fault of issue 33 written onto a copy with
@@ -13,6 +14,11 @@ and parameter set: the mean RMSE (deg) clean and faulty, averaged over the seeds
 estimated angle (deg), on how many seeds both stay within the issue's bound (1.3 x clean + 0.1
 deg), and whether every faulty column was named (``"faults"`` of ``kckf evaluate --json``)
 or, for the set-up mistakes, by ``kk.setup_check``.
+
+``--quick``: a smoke run that the long tests run: one seed, 2 Adam steps per fit, every fault,
+then ``--exact``'s section on one seed (its lines on stderr, its rows under ``"exact"`` of the
+JSON): the figures mean nothing. ``--exact --json`` prints those rows as JSON (the lines on
+stderr).
 """
 
 from __future__ import annotations
@@ -94,15 +100,19 @@ EXACT_FAULTS = {
 }
 
 
-def exact(seeds):
+def exact(seeds, file=None):
     """``--exact``: each of ``EXACT_FAULTS`` on a 30 s exact-rotation walking session of
     ``x,y,x,y`` per seed, kckf3d with paper defaults, float32: the mean RMSE (deg) clean and
-    faulty, whether within 1.3 x clean + 0.1, and what was named."""
+    faulty, whether within 1.3 x clean + 0.1, and what was named. Prints a line each (to
+    ``file``, default stdout) and returns the same per seed."""
+    file = file or sys.stdout
+    out = {}
     for seed in seeds:
         s = kk.simulate("x,y,x,y", "walking", seed, 30.0, kinematics="exact", device_seed=seed)
         clean = kk.rmse_table([s], [kk.filter_sessions([s], "kckf3d")[0].angles])[
             "mean_rmse_deg"]
-        print(f"seed {seed}: clean {clean:.2f} deg")
+        print(f"seed {seed}: clean {clean:.2f} deg", file=file)
+        out[str(seed)] = row = {"clean": float(clean), "faults": {}}
         for name, specs in EXACT_FAULTS.items():
             bad = kk.inject_faults(s, [kk.Fault.parse(x) for x in specs])
             est = kk.filter_sessions([bad], "kckf3d")[0]
@@ -114,7 +124,10 @@ def exact(seeds):
             found += [f"{'/'.join(d['columns'])} drift" for d in kk.hall_drift(
                 bad, params, est.faults)]
             print(f"  {name:40s} {r:5.2f} deg, within {r <= 1.3 * clean + 0.1}, named: "
-                  f"{', '.join(found) or 'nothing'}")
+                  f"{', '.join(found) or 'nothing'}", file=file)
+            row["faults"][name] = {"rmse_deg": float(r), "within": bool(r <= 1.3 * clean + 0.1),
+                                   "named": found}
+    return out
 
 
 def main(argv=None):
@@ -124,9 +137,18 @@ def main(argv=None):
     ap.add_argument("--json", action="store_true")
     ap.add_argument("--exact", action="store_true",
                     help="the faults on exact-rotation sessions with kckf3d (paper defaults)")
+    ap.add_argument("--quick", action="store_true",
+                    help="a smoke run on tiny sizes (the long tests run it): the figures mean "
+                         "nothing; one seed, 2 fitting steps, then --exact's section too")
     args = ap.parse_args(argv)
+    if args.quick:
+        args.seeds, args.steps = "1", 2
     if args.exact:
-        return exact([int(x) for x in args.seeds.split(",")])
+        rows = exact([int(x) for x in args.seeds.split(",")],
+                     sys.stderr if args.json else sys.stdout)
+        if args.json:
+            print(json.dumps(rows, indent=1))
+        return
     robot = kk.Robot.from_spec("x,y,x,y")
     rows = {name: {"paper": [], "fitted": [], "max_deg": [], "named": [], "within": []}
             for name in FAULTS}
@@ -172,6 +194,9 @@ def main(argv=None):
                           "named": sorted(set(r["named"])),
                           "seeds_within_bound": f"{sum(r['within'])} of {len(r['within'])}"}
                       for n, r in rows.items()}}
+    if args.quick:
+        out["exact"] = exact([int(s) for s in args.seeds.split(",")], sys.stderr)
+        out["quick"] = True
     if args.json:
         print(json.dumps(out, indent=1))
         return

@@ -1,11 +1,13 @@
 """Steps per second of the KCKF: one long session and 64 vmapped trials, float32 and float64.
 
-    python benchmarks/filter_speed.py [--json] [--repeats 5]
+    python benchmarks/filter_speed.py [--json] [--repeats 5] [--quick]
 
 Data are simulated bench sessions (x, y, x, y) with 1 % of readings missing, so every trial's
 covariance differs (a vmapped filter cannot share one covariance across trials, see
 ../shared/notes/jax-cpu-hazards.md, item 4). Times are the median of ``--repeats`` runs after a
-compile-and-warm-up run; compile time is reported separately.
+compile-and-warm-up run; compile time is reported separately. ``--quick``: a smoke run on
+tiny sizes (a 10 s session, two trials of 300 steps, one repeat; both cases, both dtypes) that
+the long tests run: the figures mean nothing.
 """
 
 from __future__ import annotations
@@ -59,7 +61,12 @@ def main():
     ap.add_argument("--long-s", type=float, default=3600.0, help="long session length, s")
     ap.add_argument("--trials", type=int, default=64)
     ap.add_argument("--trial-steps", type=int, default=10_000)
+    ap.add_argument("--quick", action="store_true",
+                    help="a smoke run on tiny sizes (the long tests run it): the figures mean "
+                         "nothing")
     args = ap.parse_args()
+    if args.quick:
+        args.repeats, args.long_s, args.trials, args.trial_steps = 1, 10.0, 2, 300
 
     long_s = simulate("x,y,x,y", "cyclic", seed=1, duration_s=args.long_s, drop_prob=0.01)
     trials = [simulate("x,y,x,y", "cyclic", seed=100 + i, drop_prob=0.01,
@@ -81,6 +88,8 @@ def main():
                          seconds=med, compile_and_first_s=first, steps_per_s=B * T / med))
     doc = {"benchmark": "filter_speed", "method": args.method, "machine": machine(),
            "date": time.strftime("%Y-%m-%d"), "results": rows}
+    if args.quick:
+        doc["quick"] = True
     if args.json:
         print(json.dumps(doc, indent=2))
     else:

@@ -1,6 +1,6 @@
 """Time per gradient step and memory of learned tuning; time to convergence of the demo's fit.
 
-    python benchmarks/fit_speed.py [--json] [--trials 64] [--steps 10000]
+    python benchmarks/fit_speed.py [--json] [--trials 64] [--steps 10000] [--quick]
 
 Part 1: one training step (loss, gradient, Adam update) for ``--trials`` simulated bench trials
 (x, y, x, y) of ``--steps`` steps each, float32, the scan checkpointed in chunks of about
@@ -11,6 +11,9 @@ resident memory.
 
 Part 2: the fit ``kckf demo`` runs (80 Adam steps on the shipped training sessions): wall time
 and the step after which the training loss stays within 2 % of its final value.
+
+``--quick``: a smoke run on tiny sizes that the long tests run (part 1 with 2 trials x 300
+steps and 2 fitting steps, part 2 with 2 Adam steps on each data set): the figures mean nothing.
 """
 
 from __future__ import annotations
@@ -50,11 +53,11 @@ enable_cpu_loops()  # XLA's CPU loops as one kernel each, before any computation
 ROOT = os.path.join(os.path.dirname(__file__), "..")
 
 
-def gradient_step(trials: int, steps: int) -> dict:
+def gradient_step(trials: int, steps: int, fit_steps: int = 6) -> dict:
     sessions = [simulate("x,y,x,y", "cyclic", seed=i, duration_s=steps / 100.0, device_seed=1,
                          drop_prob=0.01) for i in range(trials)]
     batch = make_batch(sessions, jnp.float32)
-    cfg = FitConfig(steps=6)
+    cfg = FitConfig(steps=fit_steps)
     params = initial_params(sessions, cfg, jnp.float32)
     diff, static = eqx.partition(params, eqx.is_array)
     chunk = int(np.ceil(np.sqrt(steps)))  # fit's chunk length above REMAT_ABOVE_STEPS trial-steps
@@ -82,7 +85,7 @@ def gradient_step(trials: int, steps: int) -> dict:
             "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e3, 1)}
 
 
-def demo_convergence() -> dict:
+def demo_convergence(steps: int | None = None) -> dict:
     from kckf_jax.cli import DEMO_FIT_LR, DEMO_FIT_STEPS
 
     out = {}
@@ -91,7 +94,7 @@ def demo_convergence() -> dict:
                                                                           "train*")))]
         t0 = time.perf_counter()
         stamps = []
-        res = fit(train, (), FitConfig(steps=DEMO_FIT_STEPS, learning_rate=DEMO_FIT_LR),
+        res = fit(train, (), FitConfig(steps=steps or DEMO_FIT_STEPS, learning_rate=DEMO_FIT_LR),
                   pad_trials_to=3, callback=lambda r: stamps.append(time.perf_counter()))
         losses = np.array([h["loss_deg"] for h in res.history])
         final = losses[-1]
@@ -111,10 +114,17 @@ def main():
     ap.add_argument("--json", action="store_true")
     ap.add_argument("--trials", type=int, default=64)
     ap.add_argument("--steps", type=int, default=10_000)
+    ap.add_argument("--quick", action="store_true",
+                    help="a smoke run on tiny sizes (the long tests run it): the figures mean "
+                         "nothing")
     args = ap.parse_args()
+    if args.quick:
+        args.trials, args.steps = 2, 300
     doc = {"benchmark": "fit_speed", "machine": machine(), "date": time.strftime("%Y-%m-%d"),
-           "gradient_step": gradient_step(args.trials, args.steps),
-           "demo_fit": demo_convergence()}
+           "gradient_step": gradient_step(args.trials, args.steps, 2 if args.quick else 6),
+           "demo_fit": demo_convergence(2 if args.quick else None)}
+    if args.quick:
+        doc["quick"] = True
     if args.json:
         print(json.dumps(doc, indent=2))
         return
