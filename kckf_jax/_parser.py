@@ -1,29 +1,94 @@
 """The ``kckf`` command line's options (contract: ``../shared/spec/cli.md``); the commands
-themselves are in ``cli.py``, which hands them in."""
+themselves are in ``cli.py``, which hands them in.
+
+Every option that takes a closed set of values names each of them in its help, from the tuple
+the code checks it against: an argparse ``choices``, or, for a value the code checks itself
+(a comma-separated list, a repeatable option, a one-line error of its own), the tuple recorded
+as the option's ``accepted`` (``_accepts``; tests/test_cli_help.py reads both).
+"""
 
 from __future__ import annotations
 
 import argparse
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Mapping
+
+#: ``--dtype``'s values (stream, export), the default first.
+DTYPES = ("float32", "float64")
+#: ``kckf experiment NAME``: each name and what it runs.
+EXPERIMENTS = {"arm-imu": "arm exoskeleton + IMU fusion (Chen et al.)",
+               "markov": "Markovian (MJLS) KF for a lower-limb exoskeleton, Fig. 9"}
+#: ``kckf simulate --effect NAME=SIZE``: the unit of each name's size (``SimConfig``'s).
+_SIM_EFFECT_UNITS = {"play": "DEG", "curve": "DEG", "sync": "SEC", "delay": "SEC"}
+#: ``--quiet`` and ``--debug``'s help (the main parser's and every verb's copy).
+QUIET_HELP = ("no progress bars or messages on stderr; the result (JSON on stdout, the tables "
+              "of evaluate, demo and experiment), warnings about the data and errors still "
+              "appear")
+DEBUG_HELP = ("tracebacks on errors, and the log lines of kckf_jax and of the libraries it "
+              "reads files with (pyxdf) at DEBUG level on stderr")
+
+
+def _listing(values: Iterable[str], notes: Mapping[str, str] | None = None,
+             default: str | None = None) -> str:
+    """``a (note), b, c`` for a help text: every value of ``values`` (the code's own tuple),
+    each with its note where ``notes`` has one and ``default`` marked."""
+    out = []
+    for v in values:
+        extra = [x for x in (("default" if v == default else ""), (notes or {}).get(v, "")) if x]
+        out.append(f"{v} ({'; '.join(extra)})" if extra else v)
+    return ", ".join(out)
+
+
+def _accepts(action: argparse.Action, values: Iterable[str]) -> argparse.Action:
+    """Record on ``action`` the values the code accepts for it (checked by the code, not by
+    argparse's ``choices``: its own one-line error), for the help's tests."""
+    action.accepted = tuple(values)  # type: ignore[attr-defined]
+    return action
+
+
+def _common_options(p: argparse.ArgumentParser, default) -> None:
+    """``--debug`` and ``--quiet``: on the main parser (``default`` False) and, so that they
+    work after the verb too, on every verb's (``default`` ``argparse.SUPPRESS``: a verb that
+    is not given them leaves the main parser's value as it is)."""
+    p.add_argument("--debug", action="store_true", default=default, help=DEBUG_HELP)
+    p.add_argument("--quiet", action="store_true", default=default, help=QUIET_HELP)
+
+
+def _method_option(p: argparse.ArgumentParser, methods: Iterable[str], text: str = "",
+                   **kw) -> None:
+    """``--method``: checked by the command (``cli._check_methods``; fit: ``FitConfig``)."""
+    methods = tuple(methods)
+    _accepts(p.add_argument("--method", metavar="M", **kw,
+                            help=(text + "; " if text else "") + "one of "
+                            + _listing(methods, default="kckf")), methods)
+
+
+def _dtype_option(p: argparse.ArgumentParser, what: str) -> None:
+    p.add_argument("--dtype", choices=DTYPES, default=DTYPES[0],
+                   help=f"{what}: " + _listing(DTYPES, default=DTYPES[0]))
 
 
 def _data_options(p: argparse.ArgumentParser, plausibility: bool = True) -> None:
     """The options every command on recorded or live data shares: the gap policy and the
     plausibility check."""
     from ._fault_policy import FAULT_POLICIES
-    from ._gaps import GapPolicy
+    from ._gaps import ON_GAP, GapPolicy
 
     d = GapPolicy()
     p.add_argument("--gap", type=float, default=d.gap_s,
                    help=f"seconds between rows that count as a gap (default {d.gap_s:g})")
-    p.add_argument("--on-gap", choices=("predict", "restart"), default=d.on_gap,
-                   help="predict across a gap (default) or restart the filter after it")
+    p.add_argument("--on-gap", choices=ON_GAP, default=d.on_gap,
+                   help="what the filter does at a gap: " + _listing(
+                       ON_GAP, {"predict": "step across it", "restart": "start again after it"},
+                       default=d.on_gap))
     p.add_argument("--max-predict", type=float, default=None, metavar="SEC",
                    help="a longer gap restarts even with --on-gap predict (default 1 s)")
     p.add_argument("--faults", choices=FAULT_POLICIES, default="isolate",
-                   help="what a sensor the health monitor judges faulty does: isolate "
-                        "(default: not used until it behaves again), report (named, still "
-                        "used) or off (no monitor; docs/faults.md)")
+                   help="what a sensor the health monitor judges faulty does (docs/faults.md): "
+                        + _listing(FAULT_POLICIES, {
+                            "isolate": "not used until it behaves again",
+                            "report": "named, still used",
+                            "off": "no monitor; only the session format's screen"},
+                            default="isolate"))
     if plausibility:
         p.add_argument("--accept-implausible", action="store_true",
                        help="read a session whose time step disagrees with sample_rate_hz or "
@@ -33,13 +98,27 @@ def _data_options(p: argparse.ArgumentParser, plausibility: bool = True) -> None
 
 def build_parser(commands: Mapping[str, Callable], demo_steps: int) -> argparse.ArgumentParser:
     """The ``kckf`` parser; ``commands`` maps each ``cmd_*`` name to its function (cli.py's)."""
+    from ._effects import EFFECTS as LEARNABLE
+    from ._fit import LOSSES
+    from ._kernel import KALMAN_METHODS, METHODS
+    from ._params import ALL_LEAVES, HALL_NOISE_MODELS
+    from ._sim_faults import FAULT_KINDS
+    from ._simulate import EFFECTS as SIM_EFFECTS
+    from ._simulate import KINDS, KINEMATICS
+
     common = argparse.ArgumentParser(add_help=False)
-    common.add_argument("--debug", action="store_true", help="show tracebacks on errors")
-    common.add_argument("--quiet", action="store_true", help="no progress or messages")
+    _common_options(common, argparse.SUPPRESS)
 
     p = argparse.ArgumentParser(
-        prog="kckf", parents=[common],
-        description="Kinematically Constrained Kalman Filter for wearable serial-link robots.")
+        prog="kckf",
+        description="Kinematically Constrained Kalman Filter for wearable serial-link robots.",
+        epilog="--quiet and --debug work before or after the verb (kckf --quiet evaluate ... "
+               "is kckf evaluate --quiet ...). --quiet silences progress and messages, never "
+               "the result a command exists for, a warning about the data or an error. "
+               "--debug turns on the log of kckf_jax and pyxdf (the XDF reader) at DEBUG "
+               "level on stderr, and errors show their traceback. kckf VERB --help: each "
+               "verb's options and every value they take.")
+    _common_options(p, False)
     sub = p.add_subparsers(dest="verb", metavar="VERB")
 
     d = sub.add_parser("demo", parents=[common], help="the main job on the shipped sample data")
@@ -50,9 +129,12 @@ def build_parser(commands: Mapping[str, Callable], demo_steps: int) -> argparse.
 
     s = sub.add_parser("simulate", parents=[common], help="write a synthetic session")
     s.add_argument("out", help="session folder to write")
-    s.add_argument("--kind", choices=("cyclic", "static", "human", "walking"), default="cyclic")
-    s.add_argument("--kinematics", choices=("linear", "exact"), default="linear", help="the "
-                   "paper's linear model (default) or exact rotations (docs/simulator.md)")
+    s.add_argument("--kind", choices=KINDS, default="cyclic",
+                   help="the motion (docs/simulator.md): " + _listing(KINDS, default="cyclic"))
+    s.add_argument("--kinematics", choices=KINEMATICS, default="linear",
+                   help="docs/simulator.md: " + _listing(
+                       KINEMATICS, {"linear": "the paper's linear model",
+                                    "exact": "exact rotations"}, default="linear"))
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--duration", type=float, default=120.0, help="seconds (default 120)")
     s.add_argument("--joints", default="x,y,x,y", help="axes per joint, e.g. x,y,x,y or xyz,xyz")
@@ -63,15 +145,20 @@ def build_parser(commands: Mapping[str, Callable], demo_steps: int) -> argparse.
     s.add_argument("--device-seed", type=int, default=None, metavar="S",
                    help="seeds the robot itself (Hall curves, gyro scale errors; default: "
                         "--seed): sessions with one device seed are trials of one robot")
-    s.add_argument("--fault", action="append", default=[], metavar="SPEC",
-                   help="write a sensor fault (repeatable): KIND:COLUMN[@FROM-TO][=SIZE] "
-                        "or gap@FROM-TO (docs/simulator.md, 'Faults on request')")
-    s.add_argument("--effect", action="append", default=[], metavar="NAME=SIZE",
-                   help="a sensor effect (repeatable): play=DEG (the joints' play as the Hall "
-                        "sensors see it), curve=DEG (each Hall curve's RMS departure from "
-                        "Eq. 1), sync=SEC (a motion-capture clock error meta.json does not "
-                        "know), delay=SEC (the gyros' delay against the Hall sensors); "
-                        "docs/simulator.md, 'Sensor effects'")
+    _accepts(s.add_argument(
+        "--fault", action="append", default=[], metavar="SPEC",
+        help="write a sensor fault (repeatable): KIND:COLUMN[@FROM-TO][=SIZE] or gap@FROM-TO; "
+             "KIND one of " + _listing(FAULT_KINDS)
+             + " (docs/simulator.md, 'Faults on request')"), FAULT_KINDS)
+    _accepts(s.add_argument(
+        "--effect", action="append", default=[], metavar="NAME=SIZE",
+        help="a sensor effect (repeatable), NAME one of " + _listing(
+            (f"{n}={_SIM_EFFECT_UNITS.get(n, 'SIZE')}" for n in SIM_EFFECTS), {
+                "play=DEG": "the joints' play as the Hall sensors see it",
+                "curve=DEG": "each Hall curve's RMS departure from Eq. 1",
+                "sync=SEC": "a motion-capture clock error meta.json does not know",
+                "delay=SEC": "the gyros' delay against the Hall sensors"})
+        + "; docs/simulator.md, 'Sensor effects'"), tuple(SIM_EFFECTS))
     s.add_argument("--range-deg", type=float, default=None, metavar="DEG",
                    help="scale the motion so that its largest |angle| (joints and torso) is "
                         "DEG, up to 180, e.g. 140 for arm-like joints (default: each kind's own "
@@ -82,23 +169,25 @@ def build_parser(commands: Mapping[str, Callable], demo_steps: int) -> argparse.
 
     f = sub.add_parser("filter", parents=[common], help="run one filter over a session")
     f.add_argument("session")
-    f.add_argument("--method", default="kckf")
+    _method_option(f, METHODS, "the filter to run", default="kckf")
     f.add_argument("--params", help="fitted parameters (kckf fit)")
     f.add_argument("-o", "--output", required=True, help="estimates CSV to write")
     f.add_argument("--smooth", action="store_true",
-                   help="the fixed-interval (RTS) smoothed estimates instead (Kalman methods)")
+                   help="the fixed-interval (RTS) smoothed estimates instead (Kalman methods: "
+                        + _listing(KALMAN_METHODS) + ")")
     _data_options(f)
     f.set_defaults(func=commands['cmd_filter'])
 
     e = sub.add_parser("evaluate", parents=[common], help="error figures against motion capture")
     e.add_argument("sessions", nargs="+", metavar="SESSION")
-    e.add_argument("--method", action="append", help="repeatable (default kckf)")
+    _method_option(e, METHODS, "repeatable", action="append")
     e.add_argument("--params", help="fitted parameters (kckf fit)")
     e.add_argument("--json", action="store_true", help="JSON on stdout")
     e.add_argument("--plot", metavar="DIR", help="write Fig. 5/6-style plots to DIR")
     e.add_argument("--burn-in", type=float, default=0.0, help="seconds left out at the start")
     e.add_argument("--smooth", action="store_true",
-                   help="score the fixed-interval (RTS) smoothed estimates (kckf, kf, kckf3d)")
+                   help="score the fixed-interval (RTS) smoothed estimates (Kalman methods: "
+                        + _listing(KALMAN_METHODS) + ")")
     _data_options(e)
     e.set_defaults(func=commands['cmd_evaluate'])
 
@@ -106,30 +195,41 @@ def build_parser(commands: Mapping[str, Callable], demo_steps: int) -> argparse.
                        "gradient descent (--loss: the RMSE against motion capture, the Hall "
                        "readings' likelihood, or both)")
     t.add_argument("sessions", nargs="+", metavar="SESSION")
+    _dtype_option(t, "the fit's arithmetic (float64: to check a fit to rounding)")
     t.add_argument("-o", "--output", required=True, help="parameter file to write (JSON)")
     t.add_argument("--val", nargs="+", metavar="SESSION",
                    help="validation sessions: early stopping and choice of the best step")
     t.add_argument("--steps", type=int, default=200, help="maximum gradient steps (200)")
     t.add_argument("--seed", type=int, default=0, help="seeds minibatch draws (0)")
     t.add_argument("--lr", type=float, default=0.03, help="Adam learning rate (0.03)")
-    t.add_argument("--method", default="kckf", help="the filter to fit: kckf, kf or kckf3d")
-    t.add_argument("--noise", choices=("voltage", "angle"), default="voltage",
-                   help="Hall noise model of the fitted filter (default voltage)")
-    t.add_argument("--freeze", action="append", metavar="LEAF",
-                   help="keep a parameter leaf fixed, e.g. log_p0_angle (repeatable)")
+    _method_option(t, KALMAN_METHODS, "the filter to fit", default="kckf")
+    t.add_argument("--noise", choices=HALL_NOISE_MODELS, default="voltage",
+                   help="Hall noise model of the fitted filter: "
+                        + _listing(HALL_NOISE_MODELS, default="voltage"))
+    _accepts(t.add_argument(
+        "--freeze", action="append", metavar="LEAF",
+        help="keep a parameter leaf fixed (repeatable), LEAF one of " + _listing(ALL_LEAVES)
+             + " (effects.*: only with that effect in --learn)"), ALL_LEAVES)
     t.add_argument("--burn-in", type=float, default=0.0, help="seconds left out of the loss")
-    t.add_argument("--loss", choices=("rmse", "nll", "rmse+nll"), default="rmse",
-                   help="rmse against motion capture (default), nll: the likelihood of the Hall "
-                        "readings (needs no mocap.csv), or both")
+    t.add_argument("--loss", choices=LOSSES, default="rmse",
+                   help="what is minimised: " + _listing(LOSSES, {
+                       "rmse": "against motion capture",
+                       "nll": "the likelihood of the Hall readings; needs no mocap.csv",
+                       "rmse+nll": "both"}, default="rmse"))
     t.add_argument("--nll-weight", type=float,
                    help="rmse+nll: deg of RMSE per nat of likelihood (FitConfig.nll_weight)")
     t.add_argument("--smooth", action="store_true",
                    help="fit the fixed-interval (RTS) smoothed estimates, the offline output "
-                        "(Kalman methods; the validation loss smoothed too)")
-    t.add_argument("--learn", metavar="EFFECTS",
-                   help="sensor effects to learn too, comma-separated: offset (a clock offset "
-                        "against motion capture), gyro_scale, play (the joints' mechanical "
-                        "play), curve (Hall curves beyond Eq. 1); docs/fitting.md")
+                        "(Kalman methods: " + _listing(KALMAN_METHODS)
+                        + "; the validation loss smoothed too)")
+    _accepts(t.add_argument(
+        "--learn", metavar="EFFECTS",
+        help="sensor effects to learn too, comma-separated, some of " + _listing(LEARNABLE, {
+            "offset": "a clock offset against motion capture",
+            "gyro_timing": "where in each step the gyros' rate is taken, their delay",
+            "gyro_scale": "each gyro channel's scale error",
+            "play": "the joints' mechanical play",
+            "curve": "Hall curves beyond Eq. 1"}) + "; docs/fitting.md"), LEARNABLE)
     t.add_argument("--batch-size", type=int, help="trials per step (default all)")
     t.add_argument("--init", help="start from this parameter file instead of the paper's")
     t.add_argument("--checkpoint", help="checkpoint file (default OUTPUT.ckpt)")
@@ -158,31 +258,30 @@ def build_parser(commands: Mapping[str, Callable], demo_steps: int) -> argparse.
                         "second sender while the first is live stays foreign")
     r.add_argument("--params", help="fitted parameters (kckf fit)")
     r.add_argument("--meta", help="meta.json giving the robot layout and Hall calibration")
-    r.add_argument("--method", default="kckf")
+    _method_option(r, METHODS, "the filter to run", default="kckf")
     r.add_argument("--max-packets", type=int, help="stop after this many packets")
     r.add_argument("--idle-timeout", type=float, help="stop after this many seconds of silence")
     r.add_argument("--realtime", action="store_true", help="replay at the recorded pace")
     _data_options(r)
-    r.add_argument("--dtype", choices=("float32", "float64"), default="float32")
+    _dtype_option(r, "the filter's arithmetic")
     r.set_defaults(func=commands['cmd_stream'])
 
     x = sub.add_parser("export", parents=[common],
                        help="serialise the jitted step with jax.export for deployment")
     x.add_argument("--params", help="fitted parameters (kckf fit)")
     x.add_argument("--meta", help="or: meta.json for the paper-default filter of that robot")
-    x.add_argument("--method", default="kckf")
+    _method_option(x, METHODS, "the filter to export", default="kckf")
     x.add_argument("-o", "--output", required=True, help="file to write (.jaxexport)")
     x.add_argument("--pass-params", action="store_true",
                    help="take the parameters as an input instead of baking them in")
-    x.add_argument("--dtype", choices=("float32", "float64"), default="float32")
+    _dtype_option(x, "the exported step's arithmetic")
     _data_options(x, plausibility=False)
     x.set_defaults(func=commands['cmd_export'])
 
     xp = sub.add_parser("experiment", parents=[common],
                         help="the other papers' systems: arm exoskeleton + IMU, Markovian KF")
     xsub = xp.add_subparsers(dest="name", metavar="NAME", required=True)
-    for name, text in (("arm-imu", "arm exoskeleton + IMU fusion (Chen et al.)"),
-                       ("markov", "Markovian (MJLS) KF for a lower-limb exoskeleton, Fig. 9")):
+    for name, text in EXPERIMENTS.items():
         e2 = xsub.add_parser(name, parents=[common], help=text)
         e2.add_argument("--seed", type=int, default=0)
         e2.add_argument("--json", action="store_true", help="JSON on stdout")

@@ -3,13 +3,20 @@
 Everything for machines goes to stdout as JSON; everything for people goes to stderr or files.
 Bad input ends with one line naming the file, column or value at fault, and exit status 2
 (``--debug`` shows the traceback).
+
+``--quiet`` (before or after the verb) silences progress and messages (``_say``), never the
+result a command exists for (``_result``, or JSON on stdout), a warning about the data
+(``_warn``: faulty data is always named) or an error. ``--debug`` (likewise) shows the
+traceback of an error and the log of ``kckf_jax`` and ``pyxdf`` at DEBUG level on stderr.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import json
+import logging
 import os
 import sys
 import time
@@ -25,9 +32,17 @@ class UsageError(ValueError):
 
 # --------------------------------------------------------------------------- helpers
 def _say(args, *lines: str) -> None:
+    """Messages for people on stderr (what was written, where, how long): not under
+    ``--quiet``."""
     if not getattr(args, "quiet", False):
-        for line in lines:
-            print(line, file=sys.stderr)
+        _result(*lines)
+
+
+def _result(*lines: str) -> None:
+    """The result a command exists for, for people (a table): on stderr, even under
+    ``--quiet`` (stdout is for JSON)."""
+    for line in lines:
+        print(line, file=sys.stderr)
 
 
 def _read_sessions(paths: Sequence[str], require_mocap: bool = False, args=None):
@@ -44,7 +59,8 @@ def _gaps(args):
 
 
 def _warn(args, lines: Sequence[str]) -> None:
-    """Findings about the data on stderr (even with ``--json``: stdout stays JSON)."""
+    """Findings about the data on stderr (even with ``--json``: stdout stays JSON; even with
+    ``--quiet``: faulty data is always named)."""
     for line in lines:
         print(f"kckf {args.verb}: warning: {line}", file=sys.stderr)
 
@@ -150,13 +166,13 @@ def cmd_evaluate(args) -> int:
     if args.json:
         print(json.dumps(doc, indent=None))
     else:
-        _say(args, format_table(doc["methods"], robot, methods,
-                                f"RMSE (deg) over {len(sessions)} session(s)"))
+        _result(format_table(doc["methods"], robot, methods,
+                             f"RMSE (deg) over {len(sessions)} session(s)"))
         from ._diagnostics import describe
 
-        for m, r in doc["methods"].items():
+        for m, r in doc["methods"].items():  # the table's findings (the JSON's "diagnostics")
             if "diagnostics" in r:
-                _say(args, *describe(m, r["diagnostics"]))
+                _result(*describe(m, r["diagnostics"]))
     return 0
 
 
@@ -243,7 +259,7 @@ def cmd_fit(args) -> int:
 
     try:
         result = fit(sessions, val, config, init=init, checkpoint=ckpt, resume=args.resume,
-                     callback=on_step, gaps=_gaps(args))
+                     callback=on_step, gaps=_gaps(args), dtype=args.dtype)
     except FitInterrupted as exc:
         bar.close()
         print(f"kckf fit: {exc}", file=sys.stderr)
@@ -292,8 +308,10 @@ def cmd_stream(args) -> int:
                             max_predict_s=gaps.max_predict_s)
     sf.warmup()  # compiled before the source opens (or an LSL stream is resolved)
 
-    def say(line: str) -> None:
-        print(f"kckf stream: {line}", file=sys.stderr, flush=True)
+    def say(line: str, always: bool = False) -> None:
+        """A message (not under ``--quiet``); ``always``: the contract's readiness line."""
+        if always or not args.quiet:
+            print(f"kckf stream: {line}", file=sys.stderr, flush=True)
 
     source = st.open_source(args.source, session, realtime=args.realtime, robot=params.robot,
                             allow_from=args.allow_from, on_sender=lambda s: say(
@@ -312,7 +330,9 @@ def cmd_stream(args) -> int:
         say(source.announce)
     buf = getattr(source, "rcvbuf_actual", None)
     extra = f", receive buffer {buf} bytes" if buf else ""
-    say(f"listening on {source.description} (method {method}, {params.log_q.dtype}{extra})")
+    # Printed even under --quiet: scripts wait for it before sending (../shared/spec/cli.md).
+    say(f"listening on {source.description} (method {method}, {params.log_q.dtype}{extra})",
+        always=True)
     try:
         counts = st.run_stream(source, sink, sf,
                                st.PacketParser(params.robot, limits=params.limits),
@@ -369,7 +389,7 @@ def cmd_experiment(args) -> int:
     if args.json:
         print(json.dumps(result))
     else:
-        _say(args, json.dumps(result, indent=2))
+        _result(json.dumps(result, indent=2))
     _say(args, f"kckf experiment {args.name}: {time.perf_counter() - t0:.1f} s")
     return 0
 
@@ -406,7 +426,7 @@ def cmd_demo(args) -> int:
         for bar in bars.values():
             bar.close()
         bars.clear()
-        _say(args, "", text)
+        _result("", text)  # each data set's table: the demo's result
     _say(args, "", f"wrote {args.out}/table.md, {args.out}/results.json, {args.out}/*_params"
                    f".json and {args.out}/figures/ ({time.perf_counter() - t0:.1f} s)")
     return 0
@@ -420,12 +440,61 @@ def build_parser() -> argparse.ArgumentParser:
     return build({name: g[name] for name in g if name.startswith("cmd_")}, DEMO_FIT_STEPS)
 
 
+#: The loggers ``--debug`` turns on: the package's and the XDF reader's (``_xdf`` keeps
+#: pyxdf's quiet unless the package's logger is enabled for DEBUG).
+DEBUG_LOGGERS = ("kckf_jax", "pyxdf")
+
+
+class _StderrHandler(logging.StreamHandler):
+    """Log lines to whatever ``sys.stderr`` is when they are written (a test's capture too)."""
+
+    def __init__(self):
+        super().__init__(sys.stderr)
+        self.setFormatter(logging.Formatter("%(name)s: %(levelname)s: %(message)s"))
+
+    @property
+    def stream(self):
+        return sys.stderr
+
+    @stream.setter
+    def stream(self, value):  # StreamHandler's own assignment: the property decides
+        pass
+
+
+@contextlib.contextmanager
+def _debug_logging(on: bool):
+    """``--debug``: ``DEBUG_LOGGERS`` at DEBUG level with a handler on stderr, for the
+    command's run (as they were afterwards: ``main`` may run again in one process)."""
+    if not on:
+        yield
+        return
+    handler = _StderrHandler()
+    saved = []
+    for name in DEBUG_LOGGERS:
+        log = logging.getLogger(name)
+        saved.append((log, log.level))
+        log.setLevel(logging.DEBUG)
+        log.addHandler(handler)
+    try:
+        yield
+    finally:
+        for log, level in saved:
+            log.removeHandler(handler)
+            log.setLevel(level)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):
         parser.print_help(sys.stderr)
         return 2
+    with _debug_logging(args.debug):
+        return _run(args)
+
+
+def _run(args) -> int:
+    """The chosen verb, its errors in one line (``--debug``: the traceback)."""
     import jax
 
     from ._cache import keep_compiled_programs
