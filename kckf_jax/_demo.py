@@ -106,8 +106,11 @@ def run_demo(root: str, out: str, steps: int, learning_rate: float,
                  f"session(s), learning {', '.join(DEMO_LEARN)}; smoothed = its RTS smoother)")
         md += [f"## {ds}", "", markdown_table(doc["methods"], robot, methods), ""]
         for i, s in enumerate(test):
-            plot_session(s, {m: angles[m][i] for m in methods},
-                         os.path.join(out, "figures"), session_name(s.path))
+            name = session_name(s.path)
+            plot_session(s, {m: angles[m][i] for m in methods}, os.path.join(out, "figures"),
+                         name, gaps=doc["gaps"].get(s.path, []),
+                         faults=doc["faults"].get(s.path, []),
+                         title=f"{name}: held-out test session, every column of the table")
         yield (format_table(doc["methods"], robot, methods, title) + "\n"
                f"fitted KCKF mean RMSE {fit_mean:.3f} deg = {100 * fit_mean / paper:.0f} % of "
                f"the paper-default KCKF's {paper:.3f} deg, smoothed {smooth_mean:.3f} deg "
