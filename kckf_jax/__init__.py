@@ -26,7 +26,7 @@ The public API (everything else lives in private modules; docs/architecture.md m
   ``Steady``, ``Lanes``, ``Segments``, ``Parallel``, ``Auto``;
 * the Hall model (Eq. 1; coefficients in rad): ``hall_angle``, ``hall_slope``,
   ``hall_voltage``;
-* sessions: ``Session``, ``SessionError``, ``read_session``, ``write_session``,
+* sessions: ``Session``, ``SessionError``, ``SessionWarning``, ``read_session``, ``write_session``,
   ``align_mocap``, ``simulate``, ``SimConfig``, ``KINDS``, ``sample_data_dir`` (the sample
   sessions shipped with the package), ``Fault`` and ``inject_faults`` (sensor faults written
   into a session on request);
@@ -125,6 +125,7 @@ from ._screen import FAULT_KINDS as FAULT_KINDS
 from ._screen import fault_stretches as fault_stretches
 from ._session import Session as Session
 from ._session import SessionError as SessionError
+from ._session import SessionWarning as SessionWarning
 from ._session import align_mocap as align_mocap
 from ._session import read_session as read_session
 from ._session import write_session as write_session

@@ -9,6 +9,7 @@ nothing after it knows which. Plain NumPy and the standard library, at the edge 
 from __future__ import annotations
 
 import os
+from typing import NamedTuple
 
 import numpy as np
 
@@ -18,14 +19,26 @@ from ._storage import STORAGE_FILES, read_storage
 from ._xdf import XDF_FILE, read_xdf, xdf_streams_of
 
 
-def read_containers(folder: str, meta: dict, robot: Robot, offset_s: float, *,
-                    require_mocap: bool, context: str) -> tuple:
-    """The arrays of a session folder whose ``meta.json`` is read (``meta``).
+class Containers(NamedTuple):
+    """What ``read_containers`` read: float64 arrays in the robot's column order."""
 
-    Returns:
-        ``(t, gyro, hall_v, mocap_t, mocap, sensors_file, mocap_file)``: float64 arrays in the
-        robot's column order (``mocap_t``, ``mocap`` None without motion capture) and the
-        names of the files they came from (``mocap_file`` is ``mocap.csv`` when there is none).
+    t: np.ndarray
+    gyro: np.ndarray
+    hall_v: np.ndarray
+    mocap_t: np.ndarray | None  #: None without motion capture
+    mocap: np.ndarray | None
+    sensors_file: str  #: the file the sensors came from
+    mocap_file: str  #: the file the motion capture came from (``mocap.csv`` when none did)
+    #: the unit each angle column is written in, in the file (``rad`` or ``deg``; ``()``
+    #: without motion capture), for the plausibility messages.
+    mocap_units: tuple[str, ...] = ()
+    #: what the reader should be told, one line each (a file cut short, an empty stream).
+    notes: tuple[str, ...] = ()
+
+
+def read_containers(folder: str, meta: dict, robot: Robot, offset_s: float, *,
+                    require_mocap: bool, context: str) -> Containers:
+    """The arrays of a session folder whose ``meta.json`` is read (``meta``).
 
     Raises:
         SessionError: both ``sensors.csv`` and ``recording.xdf``, several motion-capture
@@ -37,10 +50,14 @@ def read_containers(folder: str, meta: dict, robot: Robot, offset_s: float, *,
     mapping = _mocap_columns(meta, meta_path, robot)
     sensors_file, mocap_files = _containers(folder)
     mocap_t = mocap = None
+    units: tuple[str, ...] = ()
+    notes: tuple[str, ...] = ()
+    absent = ""  # why a motion-capture stream gave none
     if sensors_file == XDF_FILE:
         rec = read_xdf(os.path.join(folder, XDF_FILE), robot, mapping,
                        xdf_streams_of(meta, meta_path), context)
         t, gyro, hall_v = rec.t, rec.gyro, rec.hall_v
+        notes, absent = rec.notes, rec.mocap_absent
         if rec.mocap is not None:
             if mocap_files:
                 raise SessionError(
@@ -51,6 +68,7 @@ def read_containers(folder: str, meta: dict, robot: Robot, offset_s: float, *,
                     f"{meta_path}: 'mocap_time_offset_s' is {offset_s!r}, but {XDF_FILE}'s "
                     "streams share the LSL clock and no offset applies; set it to 0 or remove it")
             mocap_t, mocap, mocap_files = rec.mocap_t, rec.mocap, [XDF_FILE]
+            units = rec.mocap_units
     else:
         gyro_used = set(robot.used_gyro_columns)
         cols = _read_csv(
@@ -71,8 +89,11 @@ def read_containers(folder: str, meta: dict, robot: Robot, offset_s: float, *,
                           context=context, rename=mapping)
         mocap_t = mcols["t"]
         mocap = np.stack([mcols[n] for n in robot.angle_names], axis=1)
+        units = ("rad",) * robot.n_angles
     elif mocap_file in STORAGE_FILES:
-        mocap_t, mocap = read_storage(mocap_path, robot.angle_names, mapping, context)
+        mocap_t, mocap, in_degrees = read_storage(mocap_path, robot.angle_names, mapping,
+                                                  context)
+        units = ("deg" if in_degrees else "rad",) * robot.n_angles
     if mocap is not None:
         lo, hi = mocap_t[0] + offset_s, mocap_t[-1] + offset_s
         if not np.any((t >= lo) & (t <= hi)):
@@ -82,6 +103,10 @@ def read_containers(folder: str, meta: dict, robot: Robot, offset_s: float, *,
                 f"{mocap_path}: no overlap with the sensors (mocap covers {_s(lo)}-{_s(hi)} s "
                 f"in sensor time, sensors {_s(t[0])}-{_s(t[-1])} s); check {hint}"
             )
+    elif require_mocap and absent:
+        raise SessionError(
+            f"{absent}; motion capture is needed to evaluate or to fit on the RMSE (kckf fit "
+            "--loss nll fits on the Hall readings alone)")
     elif require_mocap:
         raise SessionError(
             f"{mocap_path}: file not found; motion capture (t and {', '.join(robot.angle_names)})"
@@ -90,7 +115,7 @@ def read_containers(folder: str, meta: dict, robot: Robot, offset_s: float, *,
             f" a stream of {XDF_FILE}"
         )
 
-    return t, gyro, hall_v, mocap_t, mocap, sensors_file, mocap_file
+    return Containers(t, gyro, hall_v, mocap_t, mocap, sensors_file, mocap_file, units, notes)
 
 
 def _containers(folder: str) -> tuple[str, list[str]]:

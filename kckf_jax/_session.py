@@ -19,6 +19,7 @@ import dataclasses
 import json
 import math
 import os
+import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
@@ -37,6 +38,12 @@ from ._csvio import (
 from ._gaps import GapPolicy, find_gaps, segments
 from ._limits import SensorLimits
 from ._params import hall_arrays
+from ._plausible import (  # noqa: F401 (STEP_FACTOR, MAX_ANGLE_RAD: read here)
+    MAX_ANGLE_RAD,
+    STEP_FACTOR,
+    check_plausible,
+    mocap_unit_finding,
+)
 from ._robot import Robot
 
 FORMAT = "kckf-session/1"
@@ -47,12 +54,15 @@ META_KEYS = (
     "format", "joints", "sample_rate_hz", "mocap_time_offset_s", "hall_models", "description",
     "hall_v_range", "gyro_range_rad_s",
 )
-#: Plausibility at read time: the median time step may differ from ``1 / sample_rate_hz`` by
-#: at most this factor, and motion-capture angles may not exceed this magnitude (rad).
-STEP_FACTOR = 2.0
-MAX_ANGLE_RAD = 2.0 * math.pi
 #: Default ``max_gap_s`` of ``align_mocap``, in median mocap frame intervals.
 MAX_GAP_FRAMES = 3.0
+
+
+class SessionWarning(UserWarning):
+    """What ``read_session`` read but a user must be told, in one line naming the file: a
+    recording cut short (what was kept), an empty motion-capture stream (not used), motion
+    capture beyond any joint's reach (with its likely cause). The commands print each once on
+    stderr (``kckf VERB: warning: ...``)."""
 
 
 @dataclass(eq=False)
@@ -285,7 +295,13 @@ def read_session(path: str | os.PathLike, *, require_mocap: bool = False,
         require_mocap: raise when there is no motion capture (to fit or evaluate).
         plausible: also reject a session that is well formed but implausible
             (``check_plausible``: timestamps that are not in seconds, mocap angles that are
-            not in radians); ``False`` reads it anyway.
+            not in radians), and name motion capture no joint can reach or in another unit
+            than its file says (``mocap_unit_finding``: refused with ``require_mocap``, a
+            ``SessionWarning`` without); ``False`` reads it anyway, without a word.
+
+    Warns:
+        SessionWarning: one line each: a recording cut short (where, and what was kept), an
+            empty motion-capture stream, a ``mocap_unit_finding`` when mocap is not required.
 
     Returns:
         A ``Session``; gyro columns the file lacks and the filters do not read (e.g. the ``z``
@@ -330,50 +346,26 @@ def read_session(path: str | os.PathLike, *, require_mocap: bool = False,
     limits = _limits_of(meta, meta_path)
 
     context = f"the robot in {META_FILE} has joints {robot.spec}"
-    t, gyro, hall_v, mocap_t, mocap, sensors_file, mocap_file = read_containers(
-        folder, meta, robot, offset_s, require_mocap=require_mocap, context=context)
+    got = read_containers(folder, meta, robot, offset_s, require_mocap=require_mocap,
+                          context=context)
 
     session = Session(
-        robot=robot, t=t, gyro=gyro, hall_v=hall_v, sample_rate_hz=float(sample_rate_hz),
-        mocap_t=mocap_t, mocap=mocap, mocap_time_offset_s=float(offset_s),
-        hall_models=hall_models, description=description, extra_meta=extra_meta, path=folder,
-        limits=limits, sensors_file=sensors_file, mocap_file=mocap_file,
+        robot=robot, t=got.t, gyro=got.gyro, hall_v=got.hall_v,
+        sample_rate_hz=float(sample_rate_hz), mocap_t=got.mocap_t, mocap=got.mocap,
+        mocap_time_offset_s=float(offset_s), hall_models=hall_models, description=description,
+        extra_meta=extra_meta, path=folder, limits=limits, sensors_file=got.sensors_file,
+        mocap_file=got.mocap_file,
     )
+    for note in got.notes:
+        warnings.warn(note, SessionWarning, stacklevel=2)
     if plausible:
-        check_plausible(session)
+        check_plausible(session, mocap_units=got.mocap_units)
+        finding = mocap_unit_finding(session, got.mocap_units)
+        if finding and require_mocap:  # scoring against a truth that cannot be
+            raise SessionError(f"{finding}, or pass --accept-implausible")
+        if finding:  # the filter does not read motion capture: said, not refused
+            warnings.warn(finding, SessionWarning, stacklevel=2)
     return session
-
-
-def check_plausible(session: Session) -> None:
-    """Reject a well-formed session whose numbers cannot be what the format says they are:
-    a ``SessionError`` naming the file, the column, what was found and what was expected.
-
-    * the median time step differs from ``1 / sample_rate_hz`` by more than a factor of
-      ``STEP_FACTOR`` (2): timestamps in milliseconds, or the wrong rate in ``meta.json``;
-    * a motion-capture angle beyond ``MAX_ANGLE_RAD`` (2 pi): angles in degrees.
-
-    ``read_session(..., plausible=False)`` (the commands' ``--accept-implausible``) skips it."""
-    folder = session.path or "session"
-    sensors_path = os.path.join(folder, session.sensors_file)
-    if session.n_steps > 1:
-        med = float(np.median(np.diff(session.t)))
-        expected = 1.0 / session.sample_rate_hz
-        if not expected / STEP_FACTOR <= med <= expected * STEP_FACTOR:
-            raise SessionError(
-                f"{sensors_path}, column 't': the median time step is "
-                f"{med:.6g} s, but {META_FILE}'s sample_rate_hz = {session.sample_rate_hz:g} Hz "
-                f"means {expected:.6g} s (t must be in seconds; timestamps in milliseconds?); "
-                "fix the file or sample_rate_hz, or pass --accept-implausible")
-    if session.mocap is not None:
-        big = np.abs(np.nan_to_num(session.mocap)) > MAX_ANGLE_RAD
-        if big.any():
-            k = int(np.argmax(big.any(axis=0)))
-            worst = float(np.nanmax(np.abs(session.mocap[:, k])))
-            raise SessionError(
-                f"{os.path.join(folder, session.mocap_file)}, column "
-                f"{session.robot.angle_names[k]!r}: "
-                f"|angle| reaches {worst:.6g}, beyond 2 pi (angles must be in rad; degrees?); "
-                "fix the file, or pass --accept-implausible")
 
 
 def split_at_gaps(session: Session, policy: GapPolicy) -> list[Session]:

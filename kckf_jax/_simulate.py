@@ -44,6 +44,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from ._hall import DEG, PAPER_HALL_DEG, hall_voltage
+from ._limits import JOINT_RANGE_RAD, SensorLimits
 from ._params import hall_arrays
 from ._robot import AXES, Robot
 from ._rotations import chain_rotation, euler_xyz, link_rates
@@ -430,5 +431,15 @@ def simulate(
                      + (f", {kinematics} kinematics" if kinematics != "linear" else "")
                      + " (kckf-jax)"),
         extra_meta={"simulation": simulation},
+        limits=_limits_for(cfg.motion_range_deg),
     )
     return inject_faults(session, faults, seed=seed) if faults else session
+
+
+def _limits_for(range_deg: float | None) -> SensorLimits | None:
+    """The session's stated limits: a robot simulated beyond the default reach of the joints
+    (``JOINT_RANGE_RAD``, 120 deg) says how far its joints reach (its range and a tenth,
+    at most 180 deg), as a real robot's ``meta.json`` would; else none (the defaults)."""
+    if range_deg is None or range_deg * DEG <= JOINT_RANGE_RAD:
+        return None
+    return SensorLimits(joint_range_rad=min(np.pi, 1.1 * range_deg * DEG))

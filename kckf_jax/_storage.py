@@ -33,7 +33,7 @@ _YES, _NO = ("yes", "true", "1"), ("no", "false", "0")
 
 
 def read_storage(file: str, names: Sequence[str], mapping: Mapping[str, str],
-                 context: str) -> tuple[np.ndarray, np.ndarray]:
+                 context: str) -> tuple[np.ndarray, np.ndarray, bool]:
     """The ``time`` column and our angles of an OpenSim Storage file.
 
     Args:
@@ -43,8 +43,9 @@ def read_storage(file: str, names: Sequence[str], mapping: Mapping[str, str],
         context: what the robot is, for the message of a missing column.
 
     Returns:
-        ``(time, angles)``: (F,) s, strictly increasing, and (F, K) rad (NaN where the file
-        says NaN).
+        ``(time, angles, in_degrees)``: (F,) s, strictly increasing; (F, K) rad (NaN where the
+        file says NaN); whether the header said ``inDegrees=yes`` (the plausibility checks
+        name the header when its numbers look like the other unit).
 
     Raises:
         SessionError: no ``endheader``, no or a bad ``inDegrees``, a first column that is not
@@ -83,7 +84,7 @@ def read_storage(file: str, names: Sequence[str], mapping: Mapping[str, str],
     angles = values[:, 1:]
     if in_degrees:
         angles = angles * (math.pi / 180.0)
-    return np.ascontiguousarray(values[:, 0]), np.ascontiguousarray(angles)
+    return np.ascontiguousarray(values[:, 0]), np.ascontiguousarray(angles), in_degrees
 
 
 def _in_degrees(file: str, header: list[str]) -> bool:

@@ -335,7 +335,9 @@ def cmd_stream(args) -> int:
         always=True)
     try:
         counts = st.run_stream(source, sink, sf,
-                               st.PacketParser(params.robot, limits=params.limits),
+                               # each reading judged as the step does: a clean packet in one
+                               # check, which the host path then need not repeat
+                               st.PacketParser(params.robot, params=params),
                                max_packets=args.max_packets, idle_timeout=args.idle_timeout,
                                should_stop=lambda: stop["now"])
     finally:
@@ -506,7 +508,8 @@ def _run(args) -> int:
     keep_compiled_programs()
     try:
         with warnings.catch_warnings():  # a library's warning: one line for people, not raw
-            warnings.showwarning = lambda msg, cat, *a, **k: _warn(args, [f"{cat.__name__}: {msg}"])
+            warnings.showwarning = lambda msg, cat, *a, **k: _warn(args, [
+                str(msg) if cat.__name__ == "SessionWarning" else f"{cat.__name__}: {msg}"])
             return int(args.func(args) or 0)
     except KeyboardInterrupt:
         print("kckf: interrupted", file=sys.stderr)

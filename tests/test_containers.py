@@ -11,7 +11,7 @@ import sys
 import numpy as np
 import pytest
 from helpers import error_of
-from xdf_writer import XdfStream, write_xdf
+from xdf_writer import XdfStream, chunk, write_xdf
 
 from kckf_jax import Robot, Session, read_session, simulate, write_session
 from kckf_jax.cli import main
@@ -369,9 +369,15 @@ def test_xdf_refusals(tmp_path):
     assert error_of(folder) == (
         f"{folder}/recording.xdf: not an XDF file (it starts with b't,gy', an XDF file with "
         "b'XDF:')")
-    with open(os.path.join(folder, "recording.xdf"), "wb") as f:
-        f.write(b"XDF:\x01\x20\x02\x00\x01\x00\x00\x00<info><name>broken")
+    with open(os.path.join(folder, "recording.xdf"), "wb") as f:  # a whole chunk, bad XML
+        f.write(b"XDF:" + chunk(2, b"\x01\x00\x00\x00<info><name>broken"))
     assert error_of(folder).startswith(f"{folder}/recording.xdf: not a readable XDF file (")
+    with open(os.path.join(folder, "recording.xdf"), "wb") as f:  # the chunk cut short
+        f.write(b"XDF:\x01\x20\x02\x00\x01\x00\x00\x00<info><name>broken")
+    assert error_of(folder) == (
+        f"{folder}/recording.xdf: cut short at byte 30 (inside a stream header of stream id 1; "
+        "the whole chunks end at byte 4), before the sensors' stream and its samples: nothing "
+        "usable remains (the whole chunks hold the streams: none)")
 
 
 def test_our_own_estimates_recorded_alongside_are_not_motion_capture(tmp_path):

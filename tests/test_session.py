@@ -100,7 +100,7 @@ def random_session(rng, spec: str = SPEC, T: int = 200, F: int = 250) -> Session
     gyro[rng.random(gyro.shape) < 0.05] = np.nan
     hall_v[rng.random(hall_v.shape) < 0.05] = np.nan
     mocap_t = 1234.0 + np.arange(F) / 120.0
-    mocap = rng.normal(size=(F, robot.n_angles))
+    mocap = 0.5 * rng.normal(size=(F, robot.n_angles))  # rad: within a joint's reach (120 deg)
     mocap[rng.random(mocap.shape) < 0.05] = np.nan
     return Session(
         robot=robot, t=t, gyro=gyro, hall_v=hall_v, sample_rate_hz=100.0,

@@ -376,3 +376,19 @@ def test_jitter_near_the_step_keeps_the_stamps_increasing():
     assert np.diff(s.t).min() > 0
     s = simulate("x", "cyclic", seed=1, duration_s=2.0, config=SimConfig(sample_rate_hz=4000.0))
     assert np.diff(s.t).min() > 0 and abs(np.median(np.diff(s.t)) - 2.5e-4) < 1e-5
+
+
+def test_a_robot_simulated_beyond_the_default_reach_states_its_reach():
+    """Beyond the joints' default reach (120 deg) a simulated robot's session states its own
+    (its range and a tenth), as a lab's meta.json would, so its motion capture and its Hall
+    readings are not judged beyond reach; within it, the defaults (nothing stated)."""
+    import math
+
+    from kckf_jax import SimConfig
+
+    wide = simulate("x,y", "cyclic", seed=1, duration_s=5.0,
+                    config=SimConfig(motion_range_deg=140.0))
+    assert math.isclose(wide.limits.joint_range_rad, math.radians(154.0))
+    assert np.abs(wide.mocap[:, :2]).max() <= wide.limits.joint_range_rad
+    assert simulate("x,y", "cyclic", seed=1, duration_s=5.0,
+                    config=SimConfig(motion_range_deg=100.0)).limits is None

@@ -15,6 +15,9 @@ counts the tag and the content), a 2-byte tag and the content:
 * 4 ClockOffset: the stream id, the collection time and the offset value (doubles);
 * 6 StreamFooter: the stream id and XML with first/last timestamp, sample count and the clock
   offsets.
+
+``write_xdf`` returns where each chunk starts and ends, so that a test can cut the file at a
+chosen place, as a recorder that crashed leaves it.
 """
 
 from __future__ import annotations
@@ -100,25 +103,42 @@ def _samples(s: XdfStream, start: int, stop: int, previous: float | None) -> byt
     return b"".join(out)
 
 
-def write_xdf(path, streams: Sequence[XdfStream]) -> None:
+def write_xdf(path, streams: Sequence[XdfStream], *, offsets_with_samples: bool = False
+              ) -> list[tuple[int, int, int, int]]:
     """Write ``streams`` (stream ids 1, 2, ...) to ``path``: header chunks, then the samples
-    in chunks interleaved across streams, the clock offsets, then the footers."""
-    parts = [b"XDF:", chunk(1, b'<?xml version="1.0"?><info><version>1.0</version></info>')]
+    in chunks interleaved across streams, the clock offsets, then the footers.
+
+    ``offsets_with_samples``: each stream's k-th clock offset right after its k-th Samples
+    chunk, as LabRecorder writes them while it records (every few seconds), instead of all
+    after the samples.
+
+    Returns:
+        ``(start, end, tag, stream id)`` of every chunk (stream id 0 for the file header), in
+        bytes from the start of the file (the tests cut files at these places).
+    """
+    parts = [(1, 0, chunk(1, b'<?xml version="1.0"?><info><version>1.0</version></info>'))]
     for sid, s in enumerate(streams, start=1):
-        parts.append(chunk(2, struct.pack("<I", sid) + _header_xml(s)))
+        parts.append((2, sid, chunk(2, struct.pack("<I", sid) + _header_xml(s))))
     per_stream = []
     for sid, s in enumerate(streams, start=1):
         chunks, previous = [], None
         for a in range(0, len(s.stamps), s.chunk):
             b = min(a + s.chunk, len(s.stamps))
-            chunks.append(chunk(3, struct.pack("<I", sid) + _samples(s, a, b, previous)))
+            chunks.append((3, sid, chunk(3, struct.pack("<I", sid)
+                                          + _samples(s, a, b, previous))))
             previous = float(s.stamps[b - 1])
-        per_stream.append(chunks)
-    for i in range(max((len(c) for c in per_stream), default=0)):  # interleaved, as recorded
-        parts.extend(c[i] for c in per_stream if i < len(c))
-    for sid, s in enumerate(streams, start=1):
-        for when, value in s.clock_offsets:
-            parts.append(chunk(4, struct.pack("<Idd", sid, when, value)))
+        offsets = [(4, sid, chunk(4, struct.pack("<Idd", sid, when, value)))
+                   for when, value in s.clock_offsets]
+        if offsets_with_samples:
+            merged = []
+            for k, c in enumerate(chunks):
+                merged += [c, *offsets[k:k + 1]]
+            chunks, offsets = merged + offsets[len(chunks):], []
+        per_stream.append((chunks, offsets))
+    for i in range(max((len(c) for c, _ in per_stream), default=0)):  # interleaved, as recorded
+        parts.extend(c[i] for c, _ in per_stream if i < len(c))
+    for _, offsets in per_stream:
+        parts.extend(offsets)
     for sid, s in enumerate(streams, start=1):
         n = len(s.stamps)
         offsets = "".join(f"<offset><time>{w!r}</time><value>{v!r}</value></offset>"
@@ -128,6 +148,11 @@ def write_xdf(path, streams: Sequence[XdfStream]) -> None:
                   f"<last_timestamp>{float(s.stamps[-1]) if n else 0.0!r}</last_timestamp>"
                   f"<sample_count>{n}</sample_count>"
                   f"<clock_offsets>{offsets}</clock_offsets></info>")
-        parts.append(chunk(6, struct.pack("<I", sid) + footer.encode()))
+        parts.append((6, sid, chunk(6, struct.pack("<I", sid) + footer.encode())))
+    layout, at = [], 4
+    for tag, sid, raw in parts:
+        layout.append((at, at + len(raw), tag, sid))
+        at += len(raw)
     with open(path, "wb") as f:
-        f.write(b"".join(parts))
+        f.write(b"XDF:" + b"".join(raw for _, _, raw in parts))
+    return layout
