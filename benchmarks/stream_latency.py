@@ -87,7 +87,7 @@ def in_process(s, pk, export_path, quick: bool = False) -> dict:
     params = Params.paper_defaults(s.robot, s.hall_models)
     sf = StreamingFilter(params)
     sf.warmup()
-    parser = PacketParser(s.robot)
+    parser = PacketParser(s.robot, params=params)  # as kckf stream's: judges each reading
     parsed = [parser.parse(p) for p in pk]
     step_us = _timed(sf.push, parsed)
     sf.reset()
@@ -120,9 +120,10 @@ def in_process(s, pk, export_path, quick: bool = False) -> dict:
     reg = simulate(s.robot, "cyclic", seed=4, duration_s=30.0 if quick else 80.0,
                    drop_prob=0.0)
     reg.t = np.arange(reg.n_steps) * 0.01
-    sf = StreamingFilter(Params.paper_defaults(reg.robot, reg.hall_models), host_path=True)
+    reg_params = Params.paper_defaults(reg.robot, reg.hall_models)
+    sf = StreamingFilter(reg_params, host_path=True)
     sf.warmup()
-    parsed = [parser.parse(p) for p in packets(reg)]
+    parsed = [PacketParser(reg.robot, params=reg_params).parse(p) for p in packets(reg)]
     warm = sf.host_after
     for p in parsed[:warm]:
         sf.push(p)

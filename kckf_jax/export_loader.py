@@ -32,6 +32,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import struct
 import sys
 
 import jax
@@ -72,6 +73,9 @@ def low_latency() -> None:
 
 
 MAGIC = b"KCKF-JAXEXPORT/1\n"
+#: Linux's socket option stamping each datagram with its arrival (a ``struct timeval``).
+SO_TIMESTAMP = 29
+TIMEVAL = struct.Struct("@ll")
 MAX_PACKET_BYTES = 8192
 
 
@@ -257,7 +261,7 @@ def parse_allow_from(values):
 
 class Senders:
     """One robot per stream, ``kckf stream``'s rules for a UDP socket: ``take(addr, now)``
-    says what a datagram from ``addr`` read at ``now`` (``time.monotonic``) is.
+    says what a datagram from ``addr`` that arrived at ``now`` (s, wall clock) is.
 
     ``"sender"``: the stream's robot. ``"first"``: the first sender heard (without
     ``allow_from``), the robot from now on. ``"handover"``: the robot's host on a new port
@@ -357,6 +361,14 @@ def main(argv=None) -> int:
     rx.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 8 << 20)
     rx.bind((host, int(port)))
     rx.settimeout(args.idle_timeout)
+    # Each datagram stamped with its arrival (Linux's SO_TIMESTAMP): a sender's silence is
+    # measured between arrivals, however far the loop has fallen behind.
+    stamped = sys.platform.startswith("linux")
+    if stamped:
+        try:
+            rx.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMP, 1)
+        except OSError:
+            stamped = False
     tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     sink = None
     if args.sink:
@@ -370,13 +382,20 @@ def main(argv=None) -> int:
     clock_check = None  # the last handover, until a packet with a usable t has followed it
     while True:
         try:
-            data, addr = rx.recvfrom(65536)
+            if stamped:
+                data, anc, _, addr = rx.recvmsg(65536, 64)
+                now = next((sum(x * f for x, f in zip(TIMEVAL.unpack(d[:TIMEVAL.size]),
+                                                       (1.0, 1e-6)))
+                            for lvl, kind, d in anc if lvl == socket.SOL_SOCKET
+                            and kind == SO_TIMESTAMP and len(d) >= TIMEVAL.size), None)
+            else:
+                (data, addr), now = rx.recvfrom(65536), None
         except TimeoutError:
             print(f"export_loader: packets {n}, foreign {n_foreign}, handover "
                   f"{len(senders.handovers)}", file=sys.stderr, flush=True)
             return 0
         n += 1
-        kind = senders.take(addr, time.monotonic())
+        kind = senders.take(addr, time.time() if now is None else now)
         if kind == "foreign":
             n_foreign += 1
             out = {"t": None, "status": "foreign", "note": f"from {_name(addr)}"}

@@ -98,7 +98,7 @@ class _HostMap:
         np.multiply(self.k1, hall_v, out=eb)
         np.multiply(self.k2, hall_v, out=ed)
         np.exp(e, out=e)
-        g[:] = gyro[self.used]
+        np.take(gyro, self.used, out=g)
         out = np.dot(self.M, x, out=nxt[1])
         if not math.isfinite(out[-1]):
             return None
@@ -179,6 +179,7 @@ class StreamingFilter:
         self._estimated = estimated(self.robot, method)
         self._named = [(k, n) for k, (n, e) in enumerate(zip(self.names, self._estimated))
                        if e]
+        self._every = len(self._named) == self._K  # every angle estimated
         self._fn, self._flatten, self._unflatten = _compiled_step(params, method)
         self._x = np.empty(1 + self._G + self._M, dtype=self.dtype)
         self._fresh_health = init_health(self.robot, self.dtype)
@@ -353,12 +354,15 @@ class StreamingFilter:
         rec: dict = {"t": t}
         if angles is not None:
             values = angles.tolist() if isinstance(angles, np.ndarray) else angles
-            # An angle not estimated yet (a Hall baseline before its first reading) is left
-            # out, as one the method never estimates.
-            for k, n in self._named:
-                a = values[k]
-                if math.isfinite(a):
-                    rec[n] = a
+            if self._every and math.isfinite(sum(values)):
+                rec.update(zip(self.names, values))
+            else:
+                # An angle not estimated yet (a Hall baseline before its first reading) is
+                # left out, as one the method never estimates.
+                for k, n in self._named:
+                    a = values[k]
+                    if math.isfinite(a):
+                        rec[n] = a
         rec["status"] = status
         if note:
             rec["note"] = note

@@ -16,6 +16,7 @@ import math
 import os
 import select
 import socket
+import struct
 import sys
 import time
 import urllib.parse
@@ -27,6 +28,21 @@ from ._source import Foreign, Handover, Oversized, Source
 
 #: Linux's socket option that adds the count of datagrams dropped so far to each one received.
 SO_RXQ_OVFL = getattr(socket, "SO_RXQ_OVFL", 40 if sys.platform.startswith("linux") else None)
+#: Linux's socket option that stamps each datagram with the time it arrived (a ``struct
+#: timeval`` of the wall clock): a sender's silence is measured between arrivals, whatever
+#: the reader was doing meanwhile.
+SO_TIMESTAMP = getattr(socket, "SO_TIMESTAMP", 29 if sys.platform.startswith("linux") else None)
+_TIMEVAL = struct.Struct("@ll")
+
+
+def arrival_time(anc) -> float | None:
+    """The arrival time (s, wall clock) in a datagram's ancillary data (``SO_TIMESTAMP``),
+    else None."""
+    for level, kind, data in anc:
+        if level == socket.SOL_SOCKET and kind == SO_TIMESTAMP and len(data) >= _TIMEVAL.size:
+            sec, usec = _TIMEVAL.unpack(data[:_TIMEVAL.size])
+            return sec + 1e-6 * usec
+    return None
 
 
 def parse_allow_from(values: Sequence[str] | None) -> list[tuple[str, int | None]] | None:
@@ -68,11 +84,12 @@ class UdpSource(Source):
     from then on (listed in ``handovers``). A second sender while the first is live stays
     ``Foreign``, even once the first falls silent (a port first heard before the sender's
     last packet is another sender); another host is never taken over; ``handover_s=math.inf``:
-    never. The
-    silence is measured when packets are read (``time.monotonic``). ``dropped``: what the kernel
-    dropped because the receive buffer was full (``SO_RXQ_OVFL`` on each datagram read, and
-    ``count_dropped``: the socket's count in ``/proc/net/udp``, which also has what was
-    dropped after the last read)."""
+    never. The silence is measured between the datagrams' arrival times (``SO_TIMESTAMP`` on
+    Linux; elsewhere when they are read), so a reader that falls behind does not shorten it.
+
+    ``dropped``: what the kernel dropped because the receive buffer was full
+    (``SO_RXQ_OVFL`` on each datagram read, and ``count_dropped``: the socket's count in
+    ``/proc/net/udp``, which also has what was dropped after the last read)."""
 
     def __init__(self, host: str, port: int, rcvbuf: int = 8 << 20,
                  max_bytes: int = MAX_PACKET_BYTES,
@@ -97,12 +114,18 @@ class UdpSource(Source):
     def open(self) -> None:
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, self.rcvbuf)
-        self._ovfl = False
+        self._ovfl = self._stamped = False
         if SO_RXQ_OVFL is not None:
             try:
                 self.sock.setsockopt(socket.SOL_SOCKET, SO_RXQ_OVFL, 1)
                 self._ovfl = True
                 self.dropped = 0
+            except OSError:
+                pass
+        if SO_TIMESTAMP is not None:
+            try:
+                self.sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMP, 1)
+                self._stamped = True
             except OSError:
                 pass
         self.sock.bind((self.host, self.port))
@@ -114,17 +137,20 @@ class UdpSource(Source):
         if timeout != self._timeout:
             self.sock.settimeout(timeout)
             self._timeout = timeout
+        now = None
         try:
-            if self._ovfl:
-                n, anc, _, addr = self.sock.recvmsg_into([self._buf], 64, socket.MSG_TRUNC)
+            if self._ovfl or self._stamped:
+                n, anc, _, addr = self.sock.recvmsg_into([self._buf], 128, socket.MSG_TRUNC)
                 for level, kind, data in anc:
                     if level == socket.SOL_SOCKET and kind == SO_RXQ_OVFL and len(data) >= 4:
                         self.dropped = int.from_bytes(data[:4], sys.byteorder)
+                now = arrival_time(anc)
             else:
                 n, addr = self.sock.recvfrom_into(self._buf, len(self._buf), socket.MSG_TRUNC)
         except TimeoutError:
             return None
-        now = time.monotonic()
+        if now is None:
+            now = time.time()  # when it was read: the same clock as the arrival stamps
         if addr not in self._accepted:
             if self._takes_over(addr, now):
                 previous, sender = self.handovers[-1]
