@@ -81,6 +81,7 @@ def test_fit_nll_needs_no_motion_capture(session, tmp_path, capsys):
 
 
 @pytest.mark.parametrize("loss", ["nll", "rmse+nll"])
+@pytest.mark.long
 def test_the_likelihood_losses_go_down(session, loss):
     s = read_session(session)
     res = fit([s], (), FitConfig(steps=8, loss=loss))
@@ -97,6 +98,7 @@ def test_fit_config_names_the_losses():
         FitConfig(loss="rmse+nll", nll_weight=0.0)
 
 
+@pytest.mark.long
 def test_rmse_nll_is_the_rmse_plus_the_weighted_likelihood(session):
     """``rmse+nll`` = RMSE (deg) + ``nll_weight`` x NLL (nats per reading), at any weight."""
     from kckf_jax._fit import make_batch, make_loss
@@ -111,6 +113,7 @@ def test_rmse_nll_is_the_rmse_plus_the_weighted_likelihood(session):
         assert both == pytest.approx(rmse + w * nll, rel=1e-9)
 
 
+@pytest.mark.long
 def test_the_command_keeps_compiled_programs_between_runs(session, tmp_path):
     """``$KCKF_CACHE_DIR``: the second run of a command loads what the first compiled (the
     command as users run it, XLA's default flags; every program kept,

@@ -290,6 +290,7 @@ def test_padding_rows_are_no_ops():
         np.testing.assert_array_equal(x, y)
 
 
+@pytest.mark.long
 def test_jit_equals_eager():
     rng = np.random.default_rng(5)
     tr, series = _trial(5, duration_s=0.5)
@@ -348,6 +349,7 @@ def test_float32_long_run_stays_finite_and_positive_definite():
     np.testing.assert_allclose(rotvec, est64.rotvec, atol=1e-4, rtol=0)  # rad
 
 
+@pytest.mark.long
 def test_gradient_is_finite_with_missing_readings():
     rng = np.random.default_rng(10)
     tr, series = _trial(10, duration_s=0.4)

@@ -67,6 +67,7 @@ def test_evaluate_json_layout(session, capsys):
     assert "phi_x" not in doc["methods"]["hall_l"]["rmse_deg"]
 
 
+@pytest.mark.long
 def test_evaluate_reports_the_steady_path_on_a_regular_session(tmp_path, capsys):
     """A regular recording (a device clock's constant step, every reading) longer than the
     steady path's 4,096 rows: every command takes the steady path and says so."""
@@ -84,6 +85,7 @@ def test_evaluate_reports_the_steady_path_on_a_regular_session(tmp_path, capsys)
     assert doc["methods"]["kf"]["path"] == "sequential"  # its covariance never converges
 
 
+@pytest.mark.long
 def test_evaluate_table_goes_to_stderr_and_plots(session, tmp_path, capsys):
     code, out, err = _run(capsys, "evaluate", session, session, "--method", "kckf",
                           "--method", "gyro", "--plot", str(tmp_path / "fig"))
@@ -139,6 +141,7 @@ def test_bad_session_names_file_line_and_column(session, tmp_path, capsys):
     assert "sensors.csv" in err and "line 6" in err and "'abc'" in err and "gyro1_z" in err
 
 
+@pytest.mark.long
 def test_demo_runs_on_the_shipped_data(demo_results):
     out = demo_results["_out"]
     assert {"bench", "human"} <= set(demo_results)
@@ -160,6 +163,7 @@ def test_demo_runs_on_the_shipped_data(demo_results):
 
 
 @pytest.mark.parametrize("ds", ["bench", "human"])
+@pytest.mark.long
 def test_heldout_gain_on_the_sample_data(ds, demo_results):
     """Fitted KCKF mean RMSE at most 70 % of the paper-default KCKF's on unseen sessions
     (issue 3's claim on the sample data)."""
@@ -169,6 +173,7 @@ def test_heldout_gain_on_the_sample_data(ds, demo_results):
     assert methods["kckf_fit_smoothed"]["mean_rmse_deg"] < methods["kckf_fit"]["mean_rmse_deg"]
 
 
+@pytest.mark.long
 def test_console_script_and_module_entry_point():
     r = subprocess.run([sys.executable, "-m", "kckf_jax", "--help"], capture_output=True,
                        text=True, timeout=120)

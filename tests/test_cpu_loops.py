@@ -120,6 +120,7 @@ def _loops(compiled_text: str) -> tuple[int, int]:
 
 
 @pytest.mark.parametrize("path", ["lanes", "sequential"])
+@pytest.mark.long
 def test_the_filters_loops_forward_and_reverse_are_each_one_kernel(path):
     """Under the setting (the suite's conftest makes the call), every while loop of the
     fitting gradient is hoisted: a dot, scatter or custom call in a step would keep its loop

@@ -256,6 +256,7 @@ def session_path(tmp_path_factory, cyclic):
     return path
 
 
+@pytest.mark.long
 def test_evaluate_json_has_the_diagnostics_and_plot_draws_them(session_path, tmp_path,
                                                                capsys):
     figs = str(tmp_path / "figs")

@@ -133,6 +133,7 @@ def test_effects_off_change_nothing(session):
                                atol=1e-12)
 
 
+@pytest.mark.long
 def test_every_path_corrects_alike(session):
     """Regular data with effects on: the steady path and the sequential one agree, and both
     differ from the filter without the effects."""
@@ -157,6 +158,7 @@ def test_every_path_corrects_alike(session):
     assert np.nanmax(np.abs(np.asarray(plain.angles) - np.asarray(seq.angles))) > 1e-3
 
 
+@pytest.mark.long
 def test_stream_and_export_correct_as_the_batch_filter(session, tmp_path):
     params = kk.Params.paper_defaults(ROBOT, session.hall_models).with_effects(
         EFFECTS, some_effects(ROBOT))
@@ -226,6 +228,7 @@ def test_clock_offset_moves_the_comparison_not_the_filter(session):
     np.testing.assert_array_equal(np.asarray(est0), np.asarray(est1))
 
 
+@pytest.mark.long
 def test_fit_reaches_every_learned_leaf_and_keeps_a_frozen_one(session):
     """One smoothed step of the fit moves every effect it learns and none it does not; a
     frozen leaf (the offset recipe's second step: the timing kept) keeps its starting value;

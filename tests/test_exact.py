@@ -32,6 +32,7 @@ from kckf_jax._rotations import link_rates
 @pytest.mark.parametrize(("seed", "spec", "noise"), [
     (0, "xyz,xyz,xyz", "angle"), (1, "x,y,x,y", "voltage"), (2, "xy,z", "angle"),
     (3, "yz,x,xz", "voltage")])
+@pytest.mark.long
 def test_matches_numpy_reference(seed, spec, noise):
     """Irregular time steps, 10 % missing readings, random parameters: 1e-8 rad."""
     rng = np.random.default_rng(seed)
@@ -90,6 +91,7 @@ def test_model_is_the_papers_to_first_order(spec):
 
 
 @pytest.mark.parametrize("spec", ["xyz,xyz,xyz", "x,y,x,y", "x,x"])
+@pytest.mark.long
 def test_close_to_the_linear_kckf_at_small_angles(spec):
     """At small angles (0.1 deg) the two filters' estimates differ by under 2.5 % of the motion,
     and 10x larger motion does not widen the gap by more than the square. Their models agree
@@ -146,6 +148,7 @@ def test_exact_data_the_exact_filter_wins_and_torso_is_the_chain(walking):
         np.testing.assert_allclose(a[k, 9:], model.torso_angles(a[k, :9]), atol=2e-5)
 
 
+@pytest.mark.long
 def test_paths_say_why_not_and_the_batch_runs_sequential(walking):
     params = Params.paper_defaults(walking[0].robot, dtype=jnp.float64)
     series = pad_series([make_series(s.t[:400], s.gyro[:400], s.hall_v[:400])

@@ -36,6 +36,7 @@ def walking():
                      kinematics="exact") for s in (5, 6)]
 
 
+@pytest.mark.long
 def test_smoother_ends_on_the_filter_and_keeps_the_chain(walking):
     s = walking[0]
     params = Params.paper_defaults(s.robot, dtype=jnp.float64)
@@ -53,6 +54,7 @@ def test_smoother_ends_on_the_filter_and_keeps_the_chain(walking):
     np.testing.assert_allclose(a[500, 9:], model.torso_angles(a[500, :9]), atol=1e-12)
 
 
+@pytest.mark.long
 def test_float32_stays_symmetric_positive_definite(walking):
     """Half a minute of exact walking at 100 Hz, float32: no NaN, a symmetric positive definite
     covariance, the error of the float64 run (an hour: docs/kinematics.md)."""
@@ -70,6 +72,7 @@ def test_float32_stays_symmetric_positive_definite(walking):
     assert np.abs(out[jnp.float32] - out[jnp.float64]).max() < np.radians(0.05)
 
 
+@pytest.mark.long
 def test_fit_lowers_the_loss():
     short = [simulate("x,yz", "walking", seed=s, duration_s=6.0, kinematics="exact")
              for s in (1, 2)]
@@ -146,6 +149,7 @@ def test_local_observability_ranks():
     assert main(["observability", "--joints", "x,y", "--pose", "10"]) == 2
 
 
+@pytest.mark.long
 def test_the_likelihood_fits():
     """The likelihood with the RMSE (``rmse+nll``, both terms; the RMSE alone: above): a
     finite loss at every step."""
@@ -156,6 +160,7 @@ def test_the_likelihood_fits():
                if k.startswith(("loss_", "val_")) and v is not None), res.history
 
 
+@pytest.mark.long
 def test_evaluate_and_filter_commands(tmp_path):
     """``kckf simulate --kinematics exact``, then ``evaluate`` with both KCKFs (filtered and
     smoothed) and ``filter --method kckf3d``: the exact filter wins on exact data."""

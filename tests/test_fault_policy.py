@@ -96,6 +96,7 @@ def test_evaluate_takes_faults_and_says_what_report_keeps(faulty, tmp_path, caps
 
 @pytest.mark.parametrize("joints,kind", [("x,y,x,y", "walking"), ("x,y,z", "human"),
                                          ("xyz,xyz,xyz", "walking")])
+@pytest.mark.long
 def test_exact_rotations_at_large_angles_are_not_faults(joints, kind):
     """Clean exact-rotation sessions, joints to 120 deg: the linear KCKF's monitor isolates
     no sensor for more than a moment (before: gyro2_y and gyro3_y bias_step for most of the

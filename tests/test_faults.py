@@ -40,6 +40,7 @@ def _csv(path):
 
 
 # ----------------------------------------------------------------------------- the kernel
+@pytest.mark.long
 def test_out_of_range_is_missing_and_a_non_finite_update_is_skipped():
     s = simulate(ROBOT, "cyclic", seed=2, duration_s=8.0)
     params = Params.paper_defaults(ROBOT, s.hall_models, dtype=jnp.float64)
@@ -77,6 +78,7 @@ def faulty(tmp_path_factory):
     return root
 
 
+@pytest.mark.long
 def test_filter_and_stream_agree_on_faulty_readings_and_say_so(faulty, tmp_path, capsys):
     est = {}
     for name in ("clean", "bad"):
@@ -120,6 +122,7 @@ def _user_session(tmp_path, *, t_scale=1.0, mocap_scale=1.0, hole=False):
     return path
 
 
+@pytest.mark.long
 def test_timestamps_in_milliseconds_are_refused_unless_accepted(tmp_path, capsys):
     path = _user_session(tmp_path, t_scale=1000.0)
     code, out, err = _run(capsys, "evaluate", path, "--json")
@@ -141,6 +144,7 @@ def test_mocap_in_degrees_is_refused(tmp_path, capsys):
     assert read_session(path, plausible=False).has_truth
 
 
+@pytest.mark.long
 def test_a_hole_in_the_sensor_rows_is_reported_and_handled_as_the_stream_does(tmp_path,
                                                                              capsys):
     path = _user_session(tmp_path, hole=True)

@@ -78,6 +78,7 @@ def _check_invariants(params, series, method):
 
 @pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
 @pytest.mark.parametrize("method", ["kckf", "kf"])
+@pytest.mark.long
 def test_constraint_and_positive_definite_every_step(dtype, method):
     rng = np.random.default_rng(3)
     robot = Robot.from_spec("xz,y,xyz")
@@ -86,6 +87,7 @@ def test_constraint_and_positive_definite_every_step(dtype, method):
     _check_invariants(params, make_series(t, gyro, hall_v, dtype), method)
 
 
+@pytest.mark.long
 def test_no_nan_from_extreme_finite_inputs():
     """Any finite input (huge rates, rail voltages, tiny and huge dt) leaves the state finite."""
     rng = np.random.default_rng(11)
@@ -103,6 +105,7 @@ def test_no_nan_from_extreme_finite_inputs():
         assert np.all(np.isfinite(np.asarray(final.P))), method
 
 
+@pytest.mark.long
 def test_vmap_equals_loop_and_padding_is_a_no_op():
     rng = np.random.default_rng(5)
     robot = Robot.from_spec("x,y,x,y")
@@ -120,6 +123,7 @@ def test_vmap_equals_loop_and_padding_is_a_no_op():
                 one.angles[-1], est.angles[b, n:].shape), rtol=1e-12, atol=1e-12)
 
 
+@pytest.mark.long
 def test_jit_equals_eager():
     rng = np.random.default_rng(9)
     robot = Robot.from_spec("xy,x")

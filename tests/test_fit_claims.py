@@ -8,11 +8,13 @@ import os
 import subprocess
 import sys
 
+import pytest
 from helpers import default_compile_env
 
 ROOT = os.path.join(os.path.dirname(__file__), "..")
 
 
+@pytest.mark.long
 def test_recovery_of_known_parameters(tmp_path):
     """Hall coefficients perturbed by up to +-10 % per sensor, fit from the paper defaults:
     the fused Hall measurement of every joint is recovered to 1 deg RMS and the fitted

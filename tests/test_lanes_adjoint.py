@@ -55,6 +55,7 @@ def assert_close(got, ref, rtol):
 
 
 @pytest.mark.parametrize("spec", ["x,y,x,y", "xz,y,xyz"])
+@pytest.mark.long
 def test_parameter_gradient_equals_the_automatic_one_float64(spec):
     """Two equal blocks, and three of different sizes (padding joints)."""
     params, batch = recorded_like(spec, overflow=False)
@@ -121,6 +122,7 @@ def test_parameter_gradient_equals_finite_differences_float64():
     assert fd == pytest.approx(exact, rel=1e-6)
 
 
+@pytest.mark.long
 def test_float32_gradient_is_as_accurate_as_the_automatic_one():
     """float32's own rounding (about 0.2 % of the largest entry on 120 rows of this data, on
     every path) and no more."""
@@ -139,6 +141,7 @@ def test_float32_gradient_is_as_accurate_as_the_automatic_one():
 
 
 @pytest.mark.parametrize("method", ["kckf", "kf"])
+@pytest.mark.long
 def test_likelihood_gradient_equals_the_sequential_one_float64(method):
     """The likelihood's innovations (``lane_innovations_scan``) take the same reverse
     pass, with the cotangents of every innovation and its variance."""

@@ -241,6 +241,7 @@ def test_lsl_source_errors_and_choice_of_stream(lsl, monkeypatch):
         LslSource(name, ROBOT)
 
 
+@pytest.mark.long
 def test_command_lsl_in_and_out(lsl, tmp_path):
     """``kckf stream --source lsl://IN --sink lsl://OUT`` in its own process (under the same
     loopback configuration): it resolves the outlet after compiling, takes every sample, and

@@ -96,6 +96,7 @@ def differences(stored: dict, fresh: dict) -> list[str]:
 
 
 @pytest.mark.parametrize("name", sorted(f for f in os.listdir(NOTEBOOKS) if f.endswith(".ipynb")))
+@pytest.mark.long
 def test_notebook_is_stored_executed_and_current(name, tmp_path):
     fresh_path = tmp_path / name
     r = subprocess.run([sys.executable, EXECUTE, "--output", str(fresh_path),

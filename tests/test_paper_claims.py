@@ -91,6 +91,7 @@ def _one_hour() -> dict:
     return out
 
 
+@pytest.mark.long
 def test_one_hour_extended_use():
     """Sec. 4.2 / Fig. 7: movement, then an hour held still. KCKF torso error at the end within
     7 deg while the standard KF drifts away; float32 within 0.05 deg RMSE of float64 over the

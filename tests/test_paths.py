@@ -70,6 +70,7 @@ def close(a, b, atol, rtol=0.0):
 
 
 @pytest.mark.parametrize("spec", ["x,y,x,y", "xyz,xyz,xyz,xyz", "xz,y"])
+@pytest.mark.long
 def test_steady_equals_sequential_float64(spec):
     """Two blocks, three blocks of three joints, and blocks of different sizes (padding)."""
     robot = Robot.from_spec(spec)
@@ -185,6 +186,7 @@ def test_steady_path_inside_jit_trusts_the_caller():
     close(est, ref.angles, 1e-8)
 
 
+@pytest.mark.long
 def test_batch_steady_float32_and_gradients_float64():
     """A batch of regular trials: the steady path (one shared covariance phase, several whole
     blocks and nested chunk groups) equals the sequential filter, in float32 to 1e-4 rad, and
@@ -228,6 +230,7 @@ def test_batch_steady_float32_and_gradients_float64():
         assert all(np.abs(np.asarray(x)).max() > 0 for x in jax.tree_util.tree_leaves(g_fast[1:]))
 
 
+@pytest.mark.long
 def test_auto_under_grad_and_padded_batches_take_the_sequential_path():
     robot = Robot.from_spec("x")
     rng = np.random.default_rng(0)
@@ -249,6 +252,7 @@ def test_unknown_path():
 
 
 @pytest.mark.parametrize("spec", ["x,y,x,y", "xz,y,xyz"])
+@pytest.mark.long
 def test_lanes_equal_sequential_on_recorded_like_data(spec):
     """Jittered time steps, 5 % missing readings per channel, the voltage noise model, padded
     trials of uneven length and one update that overflows: the lanes path equals the
@@ -291,6 +295,7 @@ def test_lanes_equal_sequential_on_recorded_like_data(spec):
     close(one.angles[0], one_ref.angles, 1e-9)
 
 
+@pytest.mark.long
 def test_lanes_checkpointed_in_chunks_gives_the_same_values_and_gradients():
     """``Lanes(remat_chunk=...)``: the last chunk padded with no-op rows, the outputs cut back;
     values and gradients equal the plain scan's (float64)."""
@@ -327,6 +332,7 @@ class _Reversed(AbstractPath):
         return flip(final), flip(est)
 
 
+@pytest.mark.long
 def test_a_path_added_by_the_recipe_runs_everywhere_and_nothing_else_changes():
     """Passed as ``path=`` to the filter calls and the loss, offered to ``Auto`` as ``before``,
     and asked every question the package asks of a path (its answers the defaults)."""

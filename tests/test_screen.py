@@ -116,6 +116,7 @@ def test_a_disconnected_sensor_is_named_and_costs_little(disconnected):
     assert not kk.fault_stretches(clean.t, ests[0].faults, NAMES)
 
 
+@pytest.mark.long
 def test_every_path_and_the_stream_agree_on_a_faulty_session(disconnected):
     """The same screened readings everywhere: sequential, lanes, parallel, segments and the
     streaming filter, float32, to 1e-4 rad."""

@@ -105,6 +105,7 @@ def test_segments_batch_of_uneven_trials_and_an_entering_state():
           1e-9)
 
 
+@pytest.mark.long
 def test_a_failed_check_is_repaired_else_falls_back_to_the_sequential_path():
     """Warm-ups too short to forget the start (or a gyro channel missing through a whole
     warm-up): the check fails; a repair pass (every segment's rows again from where the one

@@ -31,6 +31,7 @@ from kckf_jax._likelihood import chi2_interval, hall_nll
 
 @pytest.mark.parametrize("seed", range(4))
 @pytest.mark.parametrize("method", ["kckf", "kf"])
+@pytest.mark.long
 def test_smoother_matches_numpy_rts(seed, method):
     """Random robots and parameters, irregular time steps, 10 % missing readings, both noise
     models: 1e-8 rad against the pseudo-inverse RTS smoother on the paper's full state."""
@@ -57,6 +58,7 @@ def test_smoother_matches_numpy_rts(seed, method):
                                    a[:, :robot.n_joint_axes] @ robot.torso_sum.T, atol=1e-12)
 
 
+@pytest.mark.long
 def test_smooth_batch_equals_a_loop_padding_and_float32_hold():
     robot = Robot.from_spec("x,y,x,y")
     trials = [simulate(robot, "human", seed=s, duration_s=d, drop_prob=0.02)
@@ -160,6 +162,7 @@ def test_chi2_interval():
     assert 0.99 < lo < 1.0 < hi < 1.01
 
 
+@pytest.mark.long
 def test_likelihood_on_lanes_equals_the_step_values_and_gradients():
     """A batch (uneven trials, padded; missing readings, irregular steps, the voltage model):
     the lanes path's innovations give the kernel step's likelihood and gradients, float64."""
@@ -183,6 +186,7 @@ def test_likelihood_on_lanes_equals_the_step_values_and_gradients():
         np.testing.assert_allclose(np.asarray(y), np.asarray(x), rtol=1e-9, atol=1e-12)
 
 
+@pytest.mark.long
 def test_likelihood_gradient_matches_finite_differences():
     """The likelihood's reverse mode against central differences (float64), voltage model."""
     rng = np.random.default_rng(7)

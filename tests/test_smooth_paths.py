@@ -47,6 +47,7 @@ def test_lanes_smoother_equals_sequential_and_numpy(method):
     assert _smooth_path(params, batch, method, "auto").name == "sequential"
 
 
+@pytest.mark.long
 def test_lanes_smoother_gradient_equals_sequential():
     rng = np.random.default_rng(3)
     robot = Robot.from_spec("x,y")
@@ -74,6 +75,7 @@ def _regular(robot, seed, rows, dtype=np.float64):
 
 
 @pytest.mark.parametrize("spec,rows", [("x,y,x,y", 9000), ("xz,y", 4500), ("x,y", 4097)])
+@pytest.mark.long
 def test_steady_smoother_equals_sequential(spec, rows):
     """Past the filter's head (4,096 rows in float64) the steady smoother's backward map is
     constant; 9,000 rows also reach the smoothed covariance's fixed point (4,096 rows before
@@ -129,6 +131,7 @@ def test_steady_smoother_says_why_it_does_not_apply():
         smooth_batch(params, jax.tree_util.tree_map(lambda x: x[None], one), path="fast")
 
 
+@pytest.mark.long
 def test_the_policy_lays_out_the_smoother_with_its_own_constants_and_checks_once(monkeypatch):
     """``Auto``'s ``Steady`` constants reach the steady smoother, whose check ``Auto`` ran
     (once: the smoother does not run it again); an explicit ``Steady`` is checked by the

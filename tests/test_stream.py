@@ -85,6 +85,7 @@ def _regular_session(seconds, seed=3):
 
 
 @pytest.mark.parametrize(("dtype", "tol"), [(jnp.float32, 2e-5), (jnp.float64, 1e-8)])
+@pytest.mark.long
 def test_host_path_engages_leaves_and_equals_batch(dtype, tol):
     """Regular complete packets: after ``HEAD_ROWS`` of them the converged map runs on the host.
     A missing Hall reading, a missing used gyro reading and a lost packet each hand the state
@@ -121,6 +122,7 @@ def test_host_path_engages_leaves_and_equals_batch(dtype, tol):
     np.testing.assert_allclose(final.P, ref_final.P, rtol=1e-4, atol=1e-12)
 
 
+@pytest.mark.long
 def test_host_path_only_where_it_applies():
     s = _regular_session(25.0)
     parser = PacketParser(ROBOT)
@@ -247,6 +249,7 @@ def _free_port() -> int:
 
 
 @pytest.mark.parametrize(("dtype", "tol"), [("float32", 1e-4), ("float64", 1e-6)])
+@pytest.mark.long
 def test_udp_loopback_equals_batch(session, tmp_path, dtype, tol):
     path = str(tmp_path / "s")
     write_session(session, path)
@@ -362,6 +365,7 @@ def test_export_runs_without_kckf_jax(session, tmp_path, pass_params):
     assert np.max(np.abs(got - ref)) <= 1e-4
 
 
+@pytest.mark.long
 def test_loader_and_stream_share_one_status_vocabulary(session, tmp_path):
     """The same faulty packets through ``kckf stream``'s filter and the exported step's
     loader: the same status for every one (and the same gap action)."""

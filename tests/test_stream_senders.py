@@ -176,6 +176,7 @@ def test_burst_received_plus_dropped_is_sent(sessions, stream_filter):
     assert counts["packets"] + counts["dropped"] == sent
 
 
+@pytest.mark.long
 def test_command_names_the_sender_and_counts_foreign(sessions, tmp_path):
     a, b = sessions
     path = str(tmp_path / "s")
@@ -262,6 +263,7 @@ def _restart_script(s, k, before, after, silence_s, shift=0.0, dest=LOCAL):
 
 
 @pytest.mark.parametrize("clock", ["continues", "restarts"])
+@pytest.mark.long
 def test_restarted_sender_is_taken_back(sessions, stream_filter, clock):
     """A robot that restarts after 1 s of silence comes back from its host on a new port:
     taken back (the default 0.5 s), named; with its clock continuing the estimates are the
@@ -433,6 +435,7 @@ def _start_and_wait(cmd):
     return proc, "".join(head)
 
 
+@pytest.mark.long
 def test_command_takes_a_restarted_sender_back(sessions, tmp_path):
     a, _ = sessions
     path = str(tmp_path / "s")
@@ -464,6 +467,7 @@ def test_command_takes_a_restarted_sender_back(sessions, tmp_path):
     assert "Traceback" not in err
 
 
+@pytest.mark.long
 def test_export_loader_udp_one_sender_and_handover(sessions, tmp_path):
     """The exported step's UDP loop: the first sender named, a second live one foreign, the
     restarted robot taken back and the step restarted with its clock."""

@@ -62,7 +62,8 @@ def read_noting(folder, **kwargs):
 # ---------------------------------------------------------------------- a file cut short
 
 
-@pytest.mark.parametrize("offsets_with_samples", [False, True])
+@pytest.mark.parametrize("offsets_with_samples",
+                         [False, pytest.param(True, marks=pytest.mark.long)])
 def test_every_cut_is_read_in_part_with_one_line_or_refused_when_nothing_remains(
         tmp_path, offsets_with_samples):
     """Cut anywhere (in a chunk's length, a header, a Samples chunk, a ClockOffset chunk, a
