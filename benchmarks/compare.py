@@ -1,6 +1,6 @@
 """kckf-jax against the libraries a user would pick instead, on the same model and data.
 
-    python benchmarks/compare.py [--json] [--robots bench,3d] [--quick]
+    python benchmarks/compare.py [--json] [--robots bench,3d] [--quick] [--no-peers]
 
 Model: the paper's KCKF (Eqs. 3-20, Q of Eq. 13, sigma_hall = 3.2 deg) with its paper-default
 parameters. Peers get the literal stacked model: full state x = [theta, phi, b, b_phi], the
@@ -21,6 +21,14 @@ path: the largest angle difference from kckf-jax's float64 sequential filter on 
 
 The arithmetic limit: flops and bytes of one step of the structured model (counted from the
 filter's block structure), and this machine's measured matmul rate and memory bandwidth.
+
+``--no-peers``: kckf-jax alone (and the plain NumPy loop), without dynamax and filterpy.
+``--quick``: a smoke run on tiny sizes that the long tests execute, the figures meaningless:
+every case on a 20,000-step session and 8 trials, a representative subset (the bench robot
+unless ``--robots`` says otherwise; the gradient on the sequential path only: the steady
+path's compile alone takes 20 s; dynamax's parallel filter given 30 s); where dynamax or
+filterpy is not installed it goes on without the peers (``--no-peers``), saying so on stderr
+and in the JSON document (``peers``).
 """
 
 from __future__ import annotations
@@ -335,25 +343,28 @@ def run_robot(name: str, spec: str, args, tmp: str, dtype) -> dict:
                                                            path=path)[1].angles)
         long[f"kckf-jax {path}"] = {"steps_per_s": L / t, "seconds": t, "compile_s": first - t,
                                     "max_err_rad": err(out, ref)}
-    dp = dynamax_params(model, dtype)
-    f = dynamax_filter(dtype)
-    yy, uu = jnp.asarray(y, dtype), jnp.asarray(u, dtype)
-    out, t, first = timed(lambda: f(dp, yy, uu), repeats=1)
-    long["dynamax sequential"] = {"steps_per_s": L / t, "seconds": t, "compile_s": first - t,
-                                  "max_err_rad": err(angles_of_x(out, robot), ref)}
-    par, why = dynamax_parallel(model, y, u, dn, tmp, args.parallel_timeout)
-    if par is None:
-        long["dynamax parallel"] = {"steps_per_s": None, "note": why}
-    else:
-        info, out = par
-        long["dynamax parallel"] = {"steps_per_s": L / info["seconds"], "seconds":
-                                    info["seconds"], "max_err_rad": err(angles_of_x(out, robot),
-                                                                        ref)}
+    if args.peers:
+        dp = dynamax_params(model, dtype)
+        f = dynamax_filter(dtype)
+        yy, uu = jnp.asarray(y, dtype), jnp.asarray(u, dtype)
+        out, t, first = timed(lambda: f(dp, yy, uu), repeats=1)
+        long["dynamax sequential"] = {"steps_per_s": L / t, "seconds": t,
+                                      "compile_s": first - t,
+                                      "max_err_rad": err(angles_of_x(out, robot), ref)}
+        par, why = dynamax_parallel(model, y, u, dn, tmp, args.parallel_timeout)
+        if par is None:
+            long["dynamax parallel"] = {"steps_per_s": None, "note": why}
+        else:
+            info, out = par
+            long["dynamax parallel"] = {"steps_per_s": L / info["seconds"], "seconds":
+                                        info["seconds"],
+                                        "max_err_rad": err(angles_of_x(out, robot), ref)}
     if dn == "float64":
         n = args.loop_steps
-        out, lat_fp = filterpy_run(model, y, u, n)
-        long["filterpy loop"] = {"steps_per_s": n / lat_fp.sum(), "steps": n,
-                                 "max_err_rad": err(angles_of_x(out, robot), ref)}
+        if args.peers:
+            out, lat_fp = filterpy_run(model, y, u, n)
+            long["filterpy loop"] = {"steps_per_s": n / lat_fp.sum(), "steps": n,
+                                     "max_err_rad": err(angles_of_x(out, robot), ref)}
         out, lat_np = numpy_run(model, y, u, n)
         long["numpy loop"] = {"steps_per_s": n / lat_np.sum(), "steps": n,
                               "max_err_rad": err(angles_of_x(out, robot), ref)}
@@ -366,29 +377,30 @@ def run_robot(name: str, spec: str, args, tmp: str, dtype) -> dict:
                                                              path=path).angles)
         batch[f"kckf-jax {path}"] = {"trial_steps_per_s": B * T / t, "seconds": t,
                                      "compile_s": first - t, "max_err_rad": err(out, ref_b)}
-    from dynamax.linear_gaussian_ssm import lgssm_filter
+    if args.peers:
+        from dynamax.linear_gaussian_ssm import lgssm_filter
 
-    ys = jnp.asarray(np.stack([peer_emissions(params, t) for t in trials]), dtype)
-    us = jnp.asarray(np.stack([peer_inputs(t) for t in trials]), dtype)
-    fv = jax.jit(jax.vmap(lambda y, u: lgssm_filter(dp, y, u).filtered_means))
-    out, t, first = timed(lambda: fv(ys, us), repeats=1)
-    batch["dynamax vmapped"] = {"trial_steps_per_s": B * T / t, "seconds": t,
-                                "compile_s": first - t,
-                                "max_err_rad": err(angles_of_x(out, robot), ref_b)}
+        ys = jnp.asarray(np.stack([peer_emissions(params, t) for t in trials]), dtype)
+        us = jnp.asarray(np.stack([peer_inputs(t) for t in trials]), dtype)
+        fv = jax.jit(jax.vmap(lambda y, u: lgssm_filter(dp, y, u).filtered_means))
+        out, t, first = timed(lambda: fv(ys, us), repeats=1)
+        batch["dynamax vmapped"] = {"trial_steps_per_s": B * T / t, "seconds": t,
+                                    "compile_s": first - t,
+                                    "max_err_rad": err(angles_of_x(out, robot), ref_b)}
     cases["vmapped_trials"] = batch
 
     if dn == "float32":
         # ---- gradient of the fitting loss
         grad = {}
         b = make_batch(trials, dtype)
-        for path in (Steady(), Sequential(100)):
+        for path in (Sequential(100),) if args.quick else (Steady(), Sequential(100)):
             g = eqx.filter_jit(eqx.filter_value_and_grad(
                 lambda q, b, path=path: loss_fn(q, b, "kckf", path=path)))
             (lv, _), t, first = timed(lambda g=g, b=b: g(params, b), repeats=2)
             grad["kckf-jax " + path.name] = {
                 "seconds_per_gradient": t, "compile_s": first - t,
                 "loss_deg": float(lv) * 180 / np.pi}
-        if args.dynamax_grad:
+        if args.dynamax_grad and args.peers:
             base = {k: jnp.asarray(v, dtype) for k, v in model.items()}
 
             def dyn_loss(logs):
@@ -439,10 +451,13 @@ def run_robot(name: str, spec: str, args, tmp: str, dtype) -> dict:
         cases["streaming_latency_us"] = lat_cases
     else:
         cases["streaming_latency_us"] = {
-            "filterpy predict+update": {"median": float(np.median(lat_fp) * 1e6),
-                                        "p99": float(np.percentile(lat_fp, 99) * 1e6)},
             "numpy loop step": {"median": float(np.median(lat_np) * 1e6),
                                 "p99": float(np.percentile(lat_np, 99) * 1e6)}}
+        if args.peers:
+            cases["streaming_latency_us"] = {
+                "filterpy predict+update": {"median": float(np.median(lat_fp) * 1e6),
+                                            "p99": float(np.percentile(lat_fp, 99) * 1e6)},
+                **cases["streaming_latency_us"]}
     return {"robot": spec, "n_states_paper": 2 * robot.n_angles, "cases": cases,
             "limit": flops_bytes(robot, 4 if dn == "float32" else 8)}
 
@@ -470,14 +485,15 @@ def ratios(res: dict) -> dict:
             out[f"long {dn}: kckf-jax / {peer}"] = ours / v if v else None
         out[f"vmapped {dn}: kckf-jax / dynamax"] = (
             batch["kckf-jax auto"][dn]["trial_steps_per_s"]
-            / batch["dynamax vmapped"][dn]["trial_steps_per_s"])
+            / batch["dynamax vmapped"][dn]["trial_steps_per_s"]
+            if "dynamax vmapped" in batch else None)  # None: --no-peers
     lat = res["cases"]["streaming_latency_us"]
     ours = lat["kckf-jax StreamingFilter.push"]["float32"]["median"]
-    out["streaming: filterpy median / kckf-jax median"] = (
-        lat["filterpy predict+update"]["float64"]["median"] / ours)
+    fp = lat.get("filterpy predict+update", {}).get("float64", {}).get("median")
+    out["streaming: filterpy median / kckf-jax median"] = fp / ours if fp else None
     out["streaming: filterpy median / kckf-jax device-step median"] = (
-        lat["filterpy predict+update"]["float64"]["median"]
-        / lat["kckf-jax StreamingFilter.push, device step only"]["float32"]["median"])
+        fp / lat["kckf-jax StreamingFilter.push, device step only"]["float32"]["median"]
+        if fp else None)
     out["streaming: numpy median / kckf-jax median"] = (
         lat["numpy loop step"]["float64"]["median"] / ours)
     return out
@@ -486,14 +502,32 @@ def ratios(res: dict) -> dict:
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--json", action="store_true")
-    ap.add_argument("--robots", default="bench,3d")
-    ap.add_argument("--quick", action="store_true", help="small sizes, for a smoke test")
-    ap.add_argument("--parallel-timeout", type=int, default=90)
+    ap.add_argument("--robots", help="default bench,3d (--quick: bench)")
+    ap.add_argument("--quick", action="store_true",
+                    help="a smoke run on tiny sizes (the long tests run it): the figures mean "
+                         "nothing; the bench robot, the sequential gradient; without "
+                         "dynamax or filterpy installed, as --no-peers")
+    ap.add_argument("--no-peers", dest="peers", action="store_false",
+                    help="kckf-jax alone (and the NumPy loop): no dynamax, no filterpy")
+    ap.add_argument("--parallel-timeout", type=int,
+                    help="seconds for dynamax's parallel filter (default 90; --quick: 30)")
     ap.add_argument("--no-dynamax-grad", dest="dynamax_grad", action="store_false")
     ap.add_argument("--worker", choices=("float32", "float64"), help=argparse.SUPPRESS)
     ap.add_argument("--tmp", help=argparse.SUPPRESS)
     args = ap.parse_args()
-    if not args.worker:  # the peers are the point of this benchmark
+    args.robots = args.robots or ("bench" if args.quick else "bench,3d")
+    args.parallel_timeout = args.parallel_timeout or (30 if args.quick else 90)
+    skipped = ""
+    if not args.worker and args.peers and args.quick:  # a smoke run goes on without them
+        import importlib.util
+
+        missing = [m for m in ("dynamax", "filterpy") if importlib.util.find_spec(m) is None]
+        if missing:
+            skipped = f"skipped: {', '.join(missing)} not installed"
+            print(f"compare.py --quick: the peers (dynamax, filterpy) {skipped}; kckf-jax "
+                  "alone", file=sys.stderr, flush=True)
+            args.peers = False
+    if not args.worker and args.peers:  # the peers are the point of this benchmark
         require_peers("benchmarks/compare.py")
     args.long_steps = 20_000 if args.quick else 360_000
     args.trials, args.trial_steps = ((8, Steady().min_rows + 1000) if args.quick
@@ -507,6 +541,7 @@ def main():
             out["_rates"] = machine_rates()
         print("RESULT " + json.dumps(out, default=float))
         return
+    import shutil
     import tempfile
 
     tmp = tempfile.mkdtemp(prefix="kckf-compare-")
@@ -516,14 +551,18 @@ def main():
                "--parallel-timeout", str(args.parallel_timeout)]
         cmd += (["--quick"] if args.quick else []) + ([] if args.dynamax_grad else
                                                        ["--no-dynamax-grad"])
+        cmd += [] if args.peers else ["--no-peers"]
         r = subprocess.run(cmd, capture_output=True, text=True)
         lines = [x for x in r.stdout.splitlines() if x.startswith("RESULT ")]
         if r.returncode != 0 or not lines:
             sys.exit(f"the {dn} worker failed:\n{r.stderr[-3000:]}")
         worker[dn] = json.loads(lines[-1][len("RESULT "):])
+    shutil.rmtree(tmp, ignore_errors=True)  # the reference and the peers' inputs
     rates = worker["float32"].pop("_rates")
     doc = {"benchmark": "compare", "machine": machine(), "date": time.strftime("%Y-%m-%d"),
-           "command": "python benchmarks/compare.py" + (" --quick" if args.quick else ""),
+           "command": "python benchmarks/compare.py" + (" --quick" if args.quick else "")
+           + ("" if args.peers else " --no-peers"),
+           "peers": skipped or ("run" if args.peers else "skipped: --no-peers"),
            "rates": rates, "robots": {}}
     for name in args.robots.split(","):
         res = merge(worker["float64"][name], worker["float32"][name])

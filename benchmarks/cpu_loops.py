@@ -16,6 +16,14 @@ Data: simulated bench sessions (x, y, x, y) as ``kckf simulate`` writes them (ji
 stamps, 1 % of the readings missing), the ``voltage`` noise model of a fit's starting point,
 float32, except the regular hour (constant step, every reading, the ``angle`` noise model: the
 steady path, whose chunks are matrix products that XLA does not fold into one kernel).
+
+``--quick``: a smoke run on tiny sizes that the long tests execute (8 trials x 2,000 rows,
+hours of 16,000 rows, one timed call per case, one round), the figures meaningless; every
+case in one setting only, so the table has no ratios ("off": ``lanes_64`` and
+``sequential_64``; "on": the others), and a representative subset of the cases: not
+``gradient_64`` (``gradient_3``'s code on another batch) nor ``hour_sequential`` (``hour``'s
+on another path), unless ``--cases`` names them. Every case in both settings would take two
+minutes on 2 cores.
 """
 
 from __future__ import annotations
@@ -31,6 +39,8 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 CASES = ("fit_step", "gradient_64", "gradient_3", "lanes_64", "lanes_1024", "sequential_64",
          "hour", "hour_sequential", "hour_smooth", "smooth_batch_64", "regular_hour")
 MORE = ("lanes_4096",)  # run only when named
+QUICK_SKIP = ("gradient_64", "hour_sequential")  # --quick: unless named
+QUICK_OFF = ("lanes_64", "sequential_64")  # --quick: these in "off" (and --bounds), the rest "on"
 
 
 def worker(cases: list[str], quick: bool) -> dict:
@@ -47,10 +57,11 @@ def worker(cases: list[str], quick: bool) -> dict:
 
     robot = kk.Robot.from_spec("x,y,x,y")
     B, T = (8, 2000) if quick else (64, 10_000)
-    L = 36_000 if quick else 360_000
+    L = 16_000 if quick else 360_000
     out = {"cpu_loops": kk.cpu_loops()._asdict()}
 
     def timed(name, fn, repeats=5, path=None):
+        repeats = 1 if quick else repeats
         t0 = time.perf_counter()
         first = jax.block_until_ready(fn())
         first_s = time.perf_counter() - t0
@@ -83,7 +94,8 @@ def worker(cases: list[str], quick: bool) -> dict:
         if case == "fit_step":  # through fit itself: 6 steps, the first compiles
             stamps = []
             t0 = time.perf_counter()
-            kk.fit(batch_sessions, (), kk.FitConfig(steps=6), dtype=jnp.float32,
+            kk.fit(batch_sessions, (), kk.FitConfig(steps=3 if quick else 6),
+                   dtype=jnp.float32,
                    callback=lambda r: stamps.append(time.perf_counter()))
             out[case] = {"first_s": round(stamps[0] - t0, 3),
                          "median_s": round(float(np.median(np.diff(stamps))), 4),
@@ -133,18 +145,27 @@ def worker(cases: list[str], quick: bool) -> dict:
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--json", action="store_true")
-    ap.add_argument("--quick", action="store_true", help="small sizes, for a smoke test")
-    ap.add_argument("--rounds", type=int, default=2)
-    ap.add_argument("--cases", default=",".join(CASES))
+    ap.add_argument("--quick", action="store_true",
+                    help="a smoke run on tiny sizes (the long tests run it): the figures mean "
+                         "nothing; one round, each case in one setting only (no ratios), "
+                         f"not {' nor '.join(QUICK_SKIP)} unless named")
+    ap.add_argument("--rounds", type=int, help="default 2 (--quick: 1)")
+    ap.add_argument("--cases", help=f"default {','.join(CASES)}")
     ap.add_argument("--bounds", default="", help="more settings: bounds in bytes, comma-separated")
     ap.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args()
-    cases = args.cases.split(",")
+    if args.cases is None:
+        args.cases = ",".join(c for c in CASES if not (args.quick and c in QUICK_SKIP))
+    cases = [c for c in args.cases.split(",") if c]
     if args.worker:
         print(json.dumps(worker(cases, args.quick)))
         return
+    args.rounds = args.rounds or (1 if args.quick else 2)
     settings = ["off", "on"] + [b for b in args.bounds.split(",") if b]
     runs = {s: [] for s in settings}
+    # --quick: each case in one setting only.
+    of = {s: ",".join(c for c in cases if (c in QUICK_OFF) == (s != "on")) if args.quick
+          else args.cases for s in settings}
     for r in range(args.rounds):
         for setting in settings:
             env = dict(os.environ)
@@ -152,7 +173,7 @@ def main():
             if setting != "on":
                 env["KCKF_XLA_LOOPS"] = "0" if setting == "off" else setting
             print(f"round {r + 1}, {setting}", file=sys.stderr, flush=True)
-            cmd = [sys.executable, os.path.abspath(__file__), "--worker", "--cases", args.cases]
+            cmd = [sys.executable, os.path.abspath(__file__), "--worker", "--cases", of[setting]]
             got = subprocess.run(cmd + (["--quick"] if args.quick else []), env=env,
                                  check=True, capture_output=True, text=True)
             runs[setting].append(json.loads(got.stdout))
@@ -165,11 +186,14 @@ def main():
     for case in cases:
         row = {}
         for setting in settings:
-            r = [run[case] for run in runs[setting]]
+            r = [run[case] for run in runs[setting] if case in run]
+            if not r:  # --quick: not run in this setting
+                continue
             row[setting] = {"median_s": round(float(np.median([x["median_s"] for x in r])), 4),
                             "first_s": round(float(np.median([x["first_s"] for x in r])), 2),
                             "runs_s": [x["median_s"] for x in r], "path": r[0]["path"]}
-        row["ratio_on_over_off"] = round(row["on"]["median_s"] / row["off"]["median_s"], 3)
+        row["ratio_on_over_off"] = (round(row["on"]["median_s"] / row["off"]["median_s"], 3)
+                                    if "on" in row and "off" in row else None)
         table[case] = row
     doc = {"benchmark": "cpu_loops", "machine": machine(), "date": time.strftime("%Y-%m-%d"),
            "rounds": args.rounds, "quick": args.quick,
@@ -184,11 +208,16 @@ def main():
         return
     print(f"{'case':18s} {'path':>16s} " + " ".join(f"{s + ' (s)':>14s}" for s in settings)
           + f" {'on/off':>7s} {'first off':>9s} {'first on':>9s}")
+    def cell(row, s, key, width, digits):
+        return f"{row[s][key]:{width}.{digits}f}" if s in row else f"{'-':>{width}s}"
+
     for case, row in table.items():
-        print(f"{case:18s} {str(row['on']['path']):>16s} "
-              + " ".join(f"{row[s]['median_s']:14.4f}" for s in settings)
-              + f" {row['ratio_on_over_off']:7.2f} {row['off']['first_s']:9.2f}"
-              f" {row['on']['first_s']:9.2f}")
+        ratio = row["ratio_on_over_off"]
+        path = (row.get("on") or row.get("off") or {}).get("path")
+        print(f"{case:18s} {str(path):>16s} "
+              + " ".join(cell(row, s, "median_s", 14, 4) for s in settings)
+              + (f" {ratio:7.2f}" if ratio is not None else f" {'-':>7s}")
+              + f" {cell(row, 'off', 'first_s', 9, 2)} {cell(row, 'on', 'first_s', 9, 2)}")
 
 
 if __name__ == "__main__":

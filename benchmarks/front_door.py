@@ -1,7 +1,7 @@
 """The front door: what a one-shot command costs against the floor of reading its data, side by
 side in one run (issue 36, item 3).
 
-    python benchmarks/front_door.py [--runs 3] [--json] [--demo] [--work DIR]
+    python benchmarks/front_door.py [--runs 3] [--json] [--demo] [--work DIR] [--quick]
 
 On a recorded-like hour (``kckf simulate --kind human --duration 3600 --drop-prob 0.01``: the
 simulator's jittered stamps, 1 % of readings missing, its voltage noise; bench robot
@@ -19,6 +19,12 @@ process, the median of ``--runs``:
 The aim: warm at most 1.5x the floor, cold at most 2.5x. ``--python-path DIR`` runs the
 command from another checkout (``python -m kckf_jax`` with ``PYTHONPATH=DIR``), for a before
 and after on the same machine.
+
+``--quick``: a smoke run on tiny sizes that the long tests execute: the same commands with
+this interpreter on a simulated session of 20 s, once each (floor, evaluate and filter cold
+and warm, and ``kckf demo --steps 1`` cold only: 20 s), in a temporary work folder removed
+afterwards (not ``--work``); ``front_door_latest.json`` is not written. The figures mean
+nothing.
 """
 
 from __future__ import annotations
@@ -58,11 +64,11 @@ def _timed(cmd: list[str], env: dict) -> float:
 WORK = [tempfile.gettempdir()]
 
 
-def _hour(work: str, kckf: list[str], env: dict) -> str:
+def _hour(work: str, kckf: list[str], env: dict, duration_s: int = 3600) -> str:
     hour = os.path.join(work, "hour")
     if not os.path.exists(os.path.join(hour, "mocap.csv")):
         subprocess.run([*kckf, "simulate", hour, "--kind", "human", "--seed", "1",
-                        "--duration", "3600", "--drop-prob", "0.01", "--quiet"],
+                        "--duration", str(duration_s), "--drop-prob", "0.01", "--quiet"],
                        env=env, check=True, cwd=work)
     floor = os.path.join(work, "floor")
     if not os.path.exists(os.path.join(floor, "mocap.csv")):
@@ -82,7 +88,23 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--demo", action="store_true", help="also time kckf demo")
     ap.add_argument("--work", default=os.path.join(tempfile.gettempdir(), "kckf-front-door"))
     ap.add_argument("--python-path", help="run kckf from this checkout (PYTHONPATH)")
+    ap.add_argument("--quick", action="store_true",
+                    help="a smoke run on tiny sizes (the long tests run it): the figures mean "
+                         "nothing; a 20 s session, one run of each command, the demo too "
+                         "(cold only), in a temporary work folder")
     args = ap.parse_args(argv)
+    if not args.quick:
+        return _run(args)
+    # Never the full run's work folder: its hour would be reused (or replaced by 20 s).
+    args.work = tempfile.mkdtemp(prefix="kckf-front-door-quick-")
+    args.runs, args.demo = 1, True
+    try:
+        return _run(args)
+    finally:
+        shutil.rmtree(args.work, ignore_errors=True)
+
+
+def _run(args) -> int:
     os.makedirs(args.work, exist_ok=True)
     WORK[0] = args.work
     env = dict(os.environ)
@@ -90,21 +112,23 @@ def main(argv: list[str] | None = None) -> int:
     if args.python_path:
         env["PYTHONPATH"] = args.python_path
     kckf = [sys.executable, "-m", "kckf_jax"]
-    hour = _hour(args.work, kckf, env)
+    hour = _hour(args.work, kckf, env, 20 if args.quick else 3600)
     floor = os.path.join(args.work, "floor")
     cache = os.path.join(args.work, "cache")
     out_csv = os.path.join(args.work, "est.csv")
 
-    def cold_warm(label: str, cmd: list[str], runs: int) -> dict:
+    def cold_warm(label: str, cmd: list[str], runs: int, with_warm: bool = True) -> dict:
         cold, warm = [], []
         for _ in range(runs):
             shutil.rmtree(cache, ignore_errors=True)
             cold.append(_timed(cmd, {**env, "KCKF_CACHE_DIR": cache}))
-            warm.append(_timed(cmd, {**env, "KCKF_CACHE_DIR": cache}))
-        row = {"cold_s": statistics.median(cold), "warm_s": statistics.median(warm),
+            if with_warm:
+                warm.append(_timed(cmd, {**env, "KCKF_CACHE_DIR": cache}))
+        row = {"cold_s": statistics.median(cold),
+               "warm_s": statistics.median(warm) if warm else None,
                "cold_runs": cold, "warm_runs": warm}
-        print(f"{label:<22} cold {row['cold_s']:6.2f} s  warm {row['warm_s']:6.2f} s",
-              file=sys.stderr, flush=True)
+        print(f"{label:<22} cold {row['cold_s']:6.2f} s"
+              + (f"  warm {row['warm_s']:6.2f} s" if warm else ""), file=sys.stderr, flush=True)
         return row
 
     floor_runs = [_timed([sys.executable, "-c", FLOOR, os.path.join(floor, "sensors.csv"),
@@ -117,14 +141,18 @@ def main(argv: list[str] | None = None) -> int:
                                  args.runs)
     if args.demo:
         result["demo"] = cold_warm("kckf demo", [*kckf, "demo", "--out",
-                                                 os.path.join(args.work, "demo")], 1)
+                                                 os.path.join(args.work, "demo")]
+                                   + (["--steps", "1"] if args.quick else []), 1,
+                                   with_warm=not args.quick)
     for key in ("evaluate", "filter"):
         row = result[key]
         row["cold_ratio"] = row["cold_s"] / result["floor_s"]
         row["warm_ratio"] = row["warm_s"] / result["floor_s"]
         print(f"{key}: cold {row['cold_ratio']:.2f}x the floor (aim 2.5x), warm "
               f"{row['warm_ratio']:.2f}x (aim 1.5x)", file=sys.stderr)
-    if args.json:
+    if args.quick:
+        result["quick"] = True
+    if args.json and not args.quick:
         sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
         from _machine import machine
 

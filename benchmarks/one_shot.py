@@ -3,15 +3,20 @@ a fresh process per case (no compile cache), on recorded-like data (the simulato
 stamps, 1 % of readings missing, the voltage noise model), bench robot, float32. The
 constants of ``AbstractPath.cost`` (``Auto(runs=1)``, the command's policy) come from here.
 
-    python benchmarks/one_shot.py            # every case, a table
-    python benchmarks/one_shot.py CASE PATH  # one case in this process
+    python benchmarks/one_shot.py [--json] [--quick]  # every case, a table (or JSON)
+    python benchmarks/one_shot.py CASE PATH           # one case in this process
 
 Cases: ``hour`` (360,000 rows), ``hour_dropout`` (the same with every reading lost for 100 s),
-``trials:B:T`` (B trials of T rows).
+``trials:B:T`` (B trials of T rows). ``--json``: the results as one JSON document, last on
+stdout. ``--quick``: a smoke run on tiny sizes that the long tests execute (an "hour" of
+16,000 rows, trials of 1,000 rows; a representative subset of the cases: every kind of case
+and every path once, each still in a fresh process), the figures meaningless.
 """
 
 from __future__ import annotations
 
+import argparse
+import json
 import subprocess
 import sys
 import time
@@ -27,13 +32,16 @@ CASES = [("hour", "segments"), ("hour", "sequential"), ("hour", "auto"),
          ("trials:4:10000", "lanes"), ("trials:4:10000", "sequential"),
          ("trials:12:10000", "lanes"), ("trials:12:10000", "sequential"),
          ("trials:64:10000", "lanes"), ("trials:64:10000", "sequential")]
+#: ``--quick``: every kind of case and every path once (the hours are 16,000 rows).
+QUICK_CASES = [("hour", "auto"), ("hour_dropout", "segments"), ("trials:4:1000", "lanes"),
+               ("trials:4:1000", "sequential")]
 
 
-def one(case: str, path: str) -> None:
+def one(case: str, path: str, quick: bool = False) -> dict:
     kk.enable_cpu_loops()
     robot = kk.Robot.from_spec("x,y,x,y")
     if case.startswith("hour"):
-        T = 360_000
+        T = 16_000 if quick else 360_000
         s = kk.simulate(robot, "static", seed=3, duration_s=T / 100.0, drop_prob=0.01)
         p = kk.initial_params([s], kk.FitConfig(), jnp.float32)
         ser = kk.session_series(s, jnp.float32)
@@ -69,7 +77,10 @@ def one(case: str, path: str) -> None:
         est = kk.filter_batch(p, b, "kckf", path=_policy(path))
         jax.block_until_ready(est.angles)
         t2 = time.perf_counter()
-    print(f"{case} {path}: first call {t1 - t0:.3f} s, second {t2 - t1:.3f} s, ran {est.path}")
+    print(f"{case} {path}: first call {t1 - t0:.3f} s, second {t2 - t1:.3f} s, ran {est.path}",
+          flush=True)
+    return {"case": case, "path": path, "first_s": t1 - t0, "second_s": t2 - t1,
+            "ran": str(est.path)}
 
 
 def _policy(path: str):
@@ -77,13 +88,38 @@ def _policy(path: str):
 
 
 def main(argv: list[str]) -> int:
-    if len(argv) == 2:
-        one(*argv)
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("case", nargs="?", help="run this one case in this process (with PATH)")
+    ap.add_argument("path", nargs="?", help="the path of the one case")
+    ap.add_argument("--json", action="store_true",
+                    help="the results as JSON (last on stdout)")
+    ap.add_argument("--quick", action="store_true",
+                    help="a smoke run on tiny sizes (the long tests run it): the figures mean "
+                         "nothing; a representative subset of the cases (every kind of case "
+                         "and every path once)")
+    args = ap.parse_args(argv)
+    if args.case is not None:
+        if args.path is None:
+            ap.error("a case needs its path: CASE PATH")
+        row = one(args.case, args.path, args.quick)
+        if args.json:
+            print(json.dumps(row))
         return 0
-    for case, path in CASES:
-        out = subprocess.run([sys.executable, __file__, case, path], capture_output=True,
-                             text=True, check=True).stdout.strip().splitlines()[-1]
-        print(out, flush=True)
+    flags = (["--quick"] if args.quick else []) + (["--json"] if args.json else [])
+    rows = []
+    for case, path in QUICK_CASES if args.quick else CASES:
+        r = subprocess.run([sys.executable, __file__, case, path, *flags], capture_output=True,
+                           text=True)
+        if r.returncode != 0:
+            sys.exit(f"{case} {path} failed ({r.returncode}):\n{r.stderr[-3000:]}")
+        lines = r.stdout.strip().splitlines()
+        if args.json:
+            rows.append(json.loads(lines[-1]))
+            print(lines[-2], file=sys.stderr, flush=True)
+        else:
+            print(lines[-1], flush=True)
+    if args.json:
+        print(json.dumps({"benchmark": "one_shot", "quick": args.quick, "cases": rows}))
     return 0
 
 

@@ -26,6 +26,13 @@ repair passes, against the sequential fallback they replace); one fitting step o
 memory, and the fitting step on regular data (the steady path's gradient compile).
 Accuracy: the largest angle difference from kckf-jax's float64 sequential filter on the same
 rows.
+
+``--quick``: a smoke run on tiny sizes that the long tests execute, the figures meaningless:
+every case on 8 trials x 2,000 rows (the trial counts: 1 and 8, of 2,000 rows), an "hour" of
+24,000 rows, fits of 3 steps, one timed call each; a representative subset: the bench robot
+unless ``--robots`` says otherwise (the 3D robot runs the same code, another two minutes).
+Without dynamax or filterpy installed it goes on as ``--no-peers``, saying so on stderr and
+in the JSON document (``peers``).
 """
 
 from __future__ import annotations
@@ -66,7 +73,11 @@ def log(msg):
           flush=True)
 
 
+QUICK = [False]  # --quick: every timing one call after the first
+
+
 def timed(fn, repeats=3):
+    repeats = 1 if QUICK[0] else repeats
     t0 = time.perf_counter()
     out = jax.block_until_ready(fn())
     first = time.perf_counter() - t0
@@ -314,8 +325,8 @@ def batch_case(name, spec, robot, sess, p32, args, B, T):
 def trials_case(name, robot, p32, args):
     """Trial counts (kckf-jax): per-trial throughput from 1 to 1,024 trials."""
     scaling = {}
-    Ts = 1000 if args.quick else 5000
-    for n in ((1, 8, 64) if args.quick else (1, 8, 16, 64, 256, 1024)):
+    Ts = 2000 if args.quick else 5000  # --quick: 8 x 2,000 compiled already (batch_case)
+    for n in ((1, 8) if args.quick else (1, 8, 16, 64, 256, 1024)):
         log(f"{name}: {n} trials x {Ts}")
         ss = trials(robot, n, Ts, seed0=100)
         bb = batch_of(ss, jnp.float32)
@@ -331,7 +342,7 @@ def trials_case(name, robot, p32, args):
 
 def hour_case(name, spec, robot, p32, args):
     """One recorded-like hour: the segments path against the sequential one and one lane."""
-    L = 36_000 if args.quick else 360_000
+    L = 24_000 if args.quick else 360_000
     log(f"{name}: one hour")
     hour = kk.simulate(robot, "static", seed=3, duration_s=L / 100.0, drop_prob=0.01)
     ser = kk.session_series(hour, jnp.float32)
@@ -349,11 +360,11 @@ def hour_case(name, spec, robot, p32, args):
     long["kckf-jax auto"]["path"] = kk.choose_path(p32, ser, "kckf").path.name
     long["kckf-jax segments, float64"] = HOUR_FLOAT64[spec]
     # The same hour with every reading lost for 100 s (a cable pulled out, 10,000 rows from
-    # row 100,000; the quick hour loses 10 s from row 10,000): the warm-ups inside the gap
+    # row 100,000; the quick hour loses 6.7 s from row 6,666): the warm-ups inside the gap
     # cannot forget, so the segments' check fails; the repair passes make it exact, where the
     # old path (repairs=0) fell back to the sequential one. Errors against the float32 sequential
     # path (through the gap both are dead reckoning, 1.5e-4 rad from float64 there). The
-    # quick hour's 10 s gap is shorter than a warm-up: its check passes at once.
+    # quick hour's 6.7 s gap is shorter than a warm-up: its check passes at once.
     n, r0 = L // 36, L * 5 // 18
     gyro, hall = np.array(ser.gyro), np.array(ser.hall_v)
     gyro[r0: r0 + n] = np.nan
@@ -382,7 +393,8 @@ def fit_steps(robot, args):
     out = {}
     for label, regular in (("recorded-like", False), ("regular, angle noise", True)):
         sess = trials(robot, B, T, seed0=200)
-        cfg = kk.FitConfig(steps=6)
+        steps = 3 if args.quick else 6
+        cfg = kk.FitConfig(steps=steps)
         if regular:
             sess = [kk.simulate(robot, "cyclic", seed=200 + i, duration_s=T / 100.0)
                     for i in range(min(B, 16))]
@@ -390,7 +402,7 @@ def fit_steps(robot, args):
                 s.t = np.arange(s.n_steps) * 0.01
                 s._truth = None
             sess = [sess[i % len(sess)] for i in range(B)]
-            cfg = kk.FitConfig(steps=6, hall_noise="angle")
+            cfg = kk.FitConfig(steps=steps, hall_noise="angle")
         log(f"fit step, {label}")
         stamps = []
         t0 = time.perf_counter()
@@ -410,16 +422,31 @@ def fit_steps(robot, args):
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--json", action="store_true")
-    ap.add_argument("--quick", action="store_true")
-    ap.add_argument("--robots", default="bench,3d")
+    ap.add_argument("--quick", action="store_true",
+                    help="a smoke run on tiny sizes (the long tests run it): the figures mean "
+                         "nothing; the bench robot only; without dynamax or filterpy "
+                         "installed, as --no-peers")
+    ap.add_argument("--robots", help="default bench,3d (--quick: bench)")
     ap.add_argument("--no-peers", action="store_true")
     ap.add_argument("--cases", default="batch,trials,hour,fit",
                     help="which cases to run (comma-separated; default all)")
     args = ap.parse_args()
+    QUICK[0] = args.quick
+    args.robots = args.robots or ("bench" if args.quick else "bench,3d")
+    peers = "skipped: --no-peers" if args.no_peers else "run"
+    if args.quick and not args.no_peers:  # a smoke run goes on without them
+        import importlib.util
+
+        missing = [m for m in ("dynamax", "filterpy") if importlib.util.find_spec(m) is None]
+        if missing:
+            peers = f"skipped: {', '.join(missing)} not installed"
+            log(f"recorded.py --quick: the peers (dynamax, filterpy) {peers}; kckf-jax alone")
+            args.no_peers = True
     if not args.no_peers:
         require_peers("benchmarks/recorded.py")
     doc = {"benchmark": "recorded", "machine": machine(), "date": time.strftime("%Y-%m-%d"),
-           "jax": jax.__version__, "backend": jax.default_backend(),
+           "jax": jax.__version__, "backend": jax.default_backend(), "quick": args.quick,
+           "peers": peers,
            "robots": {n: run_robot(n, ROBOTS[n], args) for n in args.robots.split(",")}}
     try:
         doc["commit"] = subprocess.run(["git", "rev-parse", "--short", "HEAD"],
