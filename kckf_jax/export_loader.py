@@ -120,23 +120,30 @@ class ExportedStep:
     def reset(self) -> None:
         self.state = jax.device_put(np.asarray(self.header["initial_state"], self.dtype))
         self.t_prev = None
-        self.codes = np.zeros(0, int)
+        self._out = np.zeros(2 * self._K + 1)  # no packet yet: no code
 
     def _step(self, dt: float, readings: np.ndarray):
-        self._x[0] = dt
-        self._x[1:] = readings
-        args = (self.state, self._x) if self.params is None else (self.params, self.state,
-                                                                   self._x)
-        state, out = self._call(*args)
+        x = self._x
+        x[0] = dt
+        x[1:] = readings
+        if self.params is None:
+            state, out = self._call(self.state, x)
+        else:
+            state, out = self._call(self.params, self.state, x)
         out = np.asarray(out)
         K = self._K
         if out[2 * K] < 0.5:
             return None
         self.state = state
-        # Each reading's fault code (the step's own judgement: railed, unreachable, saturated,
-        # a Hall sensor isolated over time; 0 for a used or missing one).
-        self.codes = out[2 * K + 1:].astype(int)
+        self._out = out
         return out[:K]
+
+    @property
+    def codes(self) -> np.ndarray:
+        """Each reading's fault code after the last packet used (the step's own judgement:
+        railed, unreachable, saturated, a sensor isolated over time; 0 for a used or missing
+        one; ``header["fault_kinds"][code - 1]``)."""
+        return self._out[2 * self._K + 1:].astype(int)
 
     def push_array(self, t: float, readings: np.ndarray) -> np.ndarray | None:
         """Angles (rad, ``header["angle_names"]`` order) after the packet at ``t``, or None

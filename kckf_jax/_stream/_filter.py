@@ -98,7 +98,7 @@ class _HostMap:
         np.multiply(self.k1, hall_v, out=eb)
         np.multiply(self.k2, hall_v, out=ed)
         np.exp(e, out=e)
-        np.take(gyro, self.used, out=g)
+        gyro.take(self.used, out=g)  # the method: np.take adds a Python wrapper
         out = np.dot(self.M, x, out=nxt[1])
         if not math.isfinite(out[-1]):
             return None
