@@ -25,7 +25,7 @@ from .._kernel import (
 from .._model import structure
 from .._params import Params
 from .._paths import STEP_TOL_S, Steady, converged_map, readings_present, relative_change
-from .._screen import FAULT_KINDS, clean_bounds, screen
+from .._screen import FAULT_KINDS, screen
 from ._packets import USED, Packet, PacketParser
 
 #: Compiled once per parameter layout (``StreamingFilter.warmup`` compiles it up front).
@@ -192,8 +192,7 @@ class StreamingFilter:
                          and (params.effects is None or not params.effects.on))
         self._used = self.robot.used_gyro_index
         # A packet whose readings all lie where ``screen`` finds nothing wrong needs no
-        # screening on the host path (``_screen.clean_bounds``).
-        self._clean_lo, self._clean_hi = clean_bounds(self._checker.params)
+        # screening on the host path (``PacketParser.clean``).
         self._clean_x = np.empty(self._G + self._M)
         self._tol = steady.tol(self.dtype)
         # As in the batch steady path: at least its head of regular rows before switching.
@@ -322,7 +321,7 @@ class StreamingFilter:
         x = self._clean_x
         x[:self._G] = pkt.gyro
         x[self._G:] = pkt.hall_v
-        return not (np.less(x, self._clean_lo) | np.greater(x, self._clean_hi)).any()
+        return self._checker.clean(x)
 
     def _run(self, dt: float, pkt: Packet) -> tuple[np.ndarray | list, list | None] | None:
         """One step: on the host path when it applies, else on the device; the new state is

@@ -92,7 +92,7 @@ class PacketParser:
         # a dispatch each: ``Params.hall_coeffs`` is computed from the learned logs).
         self.params = None if params is None else host_screen(params)
         # Where ``screen`` finds nothing wrong with a reading: a packet inside needs no screen.
-        self._clean = None if params is None else clean_bounds(self.params)
+        self._bounds = None if params is None else clean_bounds(self.params)
         limits = self.limits
         self._names = robot.gyro_names + robot.hall_names
         self._slots = set(self._names)
@@ -101,6 +101,13 @@ class PacketParser:
         g, (lo, hi) = limits.gyro_rad_s, limits.hall_v
         self._lo = np.r_[np.full(self._G, -g), np.full(self._M, lo)]
         self._hi = np.r_[np.full(self._G, g), np.full(self._M, hi)]
+
+    def clean(self, readings: np.ndarray) -> bool:
+        """Whether ``screen`` would find nothing wrong with any of ``readings`` (``G + M``:
+        gyros, then Hall sensors; a missing one, NaN, is fine): each inside its interval of
+        ``_screen.clean_bounds``. Needs the parser to have been given ``params``."""
+        lo, hi = self._bounds
+        return not (np.less(readings, lo) | np.greater(readings, hi)).any()
 
     def empty(self, status: str, note: str = "", t: float | None = None) -> Packet:
         return Packet(t, np.full(self._G, np.nan), np.full(self._M, np.nan), status, note)
@@ -165,8 +172,7 @@ class PacketParser:
         fine), fill ``pkt`` and set its status and note."""
         problems = list(problems)
         kinds = {i: "not_a_number" for i, _ in problems}
-        if self._clean is not None and not problems and not (
-                np.less(arr, self._clean[0]) | np.greater(arr, self._clean[1])).any():
+        if self._bounds is not None and not problems and self.clean(arr):
             pkt.gyro[:] = arr[: self._G]  # every reading clean or missing: screen says so
             pkt.hall_v[:] = arr[self._G:]
             pkt.screened = True
