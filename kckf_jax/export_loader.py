@@ -311,6 +311,18 @@ class Senders:
         return "foreign"
 
 
+def arrival_time(anc) -> float | None:
+    """The arrival time (s, wall clock) in a datagram's ancillary data (``SO_TIMESTAMP``),
+    else None (as ``kckf_jax._stream._io.arrival_time``; this file imports no kckf_jax)."""
+    import socket
+
+    for level, kind, data in anc:
+        if level == socket.SOL_SOCKET and kind == SO_TIMESTAMP and len(data) >= TIMEVAL.size:
+            sec, usec = TIMEVAL.unpack(data[:TIMEVAL.size])
+            return sec + 1e-6 * usec
+    return None
+
+
 def _name(addr) -> str:
     return f"{addr[0]}:{addr[1]}"
 
@@ -391,10 +403,7 @@ def main(argv=None) -> int:
         try:
             if stamped:
                 data, anc, _, addr = rx.recvmsg(65536, 64)
-                now = next((sum(x * f for x, f in zip(TIMEVAL.unpack(d[:TIMEVAL.size]),
-                                                       (1.0, 1e-6)))
-                            for lvl, kind, d in anc if lvl == socket.SOL_SOCKET
-                            and kind == SO_TIMESTAMP and len(d) >= TIMEVAL.size), None)
+                now = arrival_time(anc)
             else:
                 (data, addr), now = rx.recvfrom(65536), None
         except TimeoutError:
