@@ -12,7 +12,9 @@ joint range, method, parameters) ``--sessions`` clean simulated sessions of one 
 fit (``--steps`` Adam steps, ``FitConfig`` defaults otherwise) on two other trials of the
 same robot. Reported per case: the monitor's findings per hour (readings it would isolate,
 by kind), the mean RMSE with ``isolate`` over ``off`` (mean and the worst session), and the
-model-mismatch warnings (``pair_mismatch``) the report gives. ``--json OUT`` writes the rows
+model-mismatch warnings (``pair_mismatch``) the report gives, and for ``kckf3d`` the gyro
+bias steps named from its bias estimate (``kk.bias_steps``: ``bias_steps_named``, any is a
+false alarm on clean data). ``--json OUT`` writes the rows
 to ``OUT`` (after each case); ``--json`` alone prints them as one line of JSON at the end of
 stdout (the per-case lines go to stderr then). ``--quick`` is the smoke run the long tests
 execute: ``--cases quick`` (three small cases that between them take every value of each of
@@ -88,6 +90,9 @@ def run_case(case, n, duration, steps):
             kinds[kk.FAULT_KINDS[int(k) - 1]] = kinds.get(kk.FAULT_KINDS[int(k) - 1], 0) + int(
                 (codes == k).sum())
     mismatch = sum(bool(kk.model_mismatch(s, method)) for s in sessions)
+    # kckf3d's bias steps (no gyro pairs: named from its bias estimate, ``kk.bias_steps``).
+    steps = (sum(len(kk.bias_steps(s, e)) for s, e in zip(sessions, out["isolate"][1]))
+             if method == "kckf3d" else 0)
     worst = int(np.argmax(ratio))
     return {"kinematics": kin, "joints": joints, "kind": kind,
             "range_deg": reach or "default", "method": method, "params": which,
@@ -96,7 +101,7 @@ def run_case(case, n, duration, steps):
             "rmse_isolate_deg": round(float(iso.mean()), 3),
             "ratio_mean": round(float(ratio.mean()), 4),
             "ratio_worst": round(float(ratio[worst]), 4), "worst_seed": worst + 1,
-            "sessions_with_mismatch_warning": mismatch}
+            "sessions_with_mismatch_warning": mismatch, "bias_steps_named": steps}
 
 
 def main(argv=None) -> int:
@@ -135,7 +140,8 @@ def main(argv=None) -> int:
         print(f"{label:50s} per h {row['isolated_per_hour']} off {row['rmse_off_deg']:.3f} "
               f"isolate/off mean {row['ratio_mean']:.4f} worst {row['ratio_worst']:.4f} "
               f"(seed {row['worst_seed']}) mismatch {row['sessions_with_mismatch_warning']}/"
-              f"{n} [{row['seconds']} s]", file=log, flush=True)
+              f"{n} bias steps {row['bias_steps_named']} [{row['seconds']} s]", file=log,
+              flush=True)
         if args.json and not to_stdout:
             with open(args.json, "w") as f:
                 json.dump(rows, f, indent=1)

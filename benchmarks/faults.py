@@ -123,6 +123,8 @@ def exact(seeds, file=None):
             params = kk.Params.paper_defaults(bad.robot, bad.hall_models)
             found += [f"{'/'.join(d['columns'])} drift" for d in kk.hall_drift(
                 bad, params, est.faults)]
+            found += [f"{' or '.join(d['columns'])} bias step at {d['t_s']:.1f} s"
+                      for d in kk.bias_steps(bad, est)]
             print(f"  {name:40s} {r:5.2f} deg, within {r <= 1.3 * clean + 0.1}, named: "
                   f"{', '.join(found) or 'nothing'}", file=file)
             row["faults"][name] = {"rmse_deg": float(r), "within": bool(r <= 1.3 * clean + 0.1),

@@ -47,7 +47,8 @@ The public API (everything else lives in private modules; docs/architecture.md m
   ``Params.with_faults``) and ``model_mismatch`` (the paper's gyro pairs that the data show
   do not read the same rate, following the pose: the linear model's limit, not a fault);
   ``hall_drift`` (a Hall sensor drifting slowly from its partner, which the monitor's fast
-  rules do not see);
+  rules do not see); ``bias_steps`` (a gyro whose bias stepped, from a ``kckf3d`` estimate's
+  biases: that model has no gyro pairs for the monitor to compare);
 * analysis: ``observability_ranks``;
 * the one process-wide setting it offers, made only when asked (XLA's CPU while loops
   compiled as one kernel each; importing kckf_jax changes nothing in the process):
@@ -56,6 +57,7 @@ The public API (everything else lives in private modules; docs/architecture.md m
 The other papers' systems are in ``kckf_jax.filters``.
 """
 
+from ._bias_steps import bias_steps as bias_steps
 from ._cpu_loops import CpuLoops as CpuLoops
 from ._cpu_loops import cpu_loops as cpu_loops
 from ._cpu_loops import enable_cpu_loops as enable_cpu_loops

@@ -13,11 +13,13 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from ._bias_steps import bias_steps, describe_bias_steps
 from ._diagnostics import diagnostics, session_innovations
 from ._drift import describe_drift, hall_drift
+from ._fault_policy import FaultPolicy
 from ._gaps import GapPolicy, find_gaps
 from ._gaps import describe as describe_gaps
-from ._kernel import KALMAN_METHODS
+from ._kernel import KALMAN_METHODS, exact_kinematics
 from ._likelihood import consistency
 from ._metrics import rmse_table
 from ._mismatch import describe_mismatch, model_mismatch
@@ -115,6 +117,26 @@ def estimate_faults(sessions: Sequence[Session], method: str, estimates) -> list
     return lines
 
 
+def bias_step_findings(sessions: Sequence[Session], method: str, estimates,
+                       params: Params | None = None, faults=None) -> tuple[dict, list[str]]:
+    """The gyro bias steps a filter without gyro pairs absorbed (``kckf3d``: ``_bias_steps``,
+    from its own bias estimates; under ``kckf`` the health monitor names them from the pairs):
+    ``({session: [step, ...]}, lines)``, sessions without a step left out. Nothing under the
+    fault policy ``off`` (``faults``, else ``params``' own), nor for a method with pairs."""
+    policy = FaultPolicy.of(faults if faults is not None else
+                            (params.faults if params is not None else None))
+    if not exact_kinematics(method) or not policy.monitors:
+        return {}, []
+    found, lines = {}, []
+    for s, e in zip(sessions, estimates):
+        steps = bias_steps(s, e)
+        if steps:
+            key = s.path or "session"
+            found[key] = steps
+            lines.append(describe_bias_steps(key, method, steps))
+    return found, lines
+
+
 def consistency_figures(sessions: Sequence[Session], method: str, estimates,
                         params: Params | None = None, gaps: GapPolicy = GapPolicy(),
                         innovations: Sequence | None = None
@@ -166,7 +188,8 @@ def evaluate_sessions(sessions: Sequence[Session], methods: Sequence[str],
     Each method has its RMSE table (``rmse_table``: with the count of steps that have truth
     and of steps scored), the ``"path"`` that computed it and the ``"skipped_updates"``, and
     the Kalman filters their consistency (``"nis"``, ``"nees"``: ``consistency_figures``);
-    the document has what is wrong with the data (``data_faults``) and ``"warnings"``: one
+    the document has what is wrong with the data (``data_faults``; and ``"bias_steps"``:
+    ``bias_step_findings`` of the method that judged the data) and ``"warnings"``: one
     line for people per finding, and per method whose RMSE is over fewer steps than have
     truth. ``smooth``: the Kalman methods' smoothed estimates are scored (``"smoothed":
     true``; their NIS is the filter's). The Kalman filters' ``"diagnostics"``
@@ -202,6 +225,10 @@ def evaluate_sessions(sessions: Sequence[Session], methods: Sequence[str],
                                       path=path, faults=faults)
     found, warnings = data_faults(sessions, params, gaps, judge,
                                   [e.faults for e in ests[judge]] if ests else None, faults)
+    if ests:
+        steps, lines = bias_step_findings(sessions, judge, ests[judge], params, faults)
+        found["bias_steps"] = steps
+        warnings += lines
     out, angles, nis_rows = {}, {}, {}
     for m in methods:
         kalman = m in KALMAN_METHODS

@@ -120,7 +120,7 @@ def _one_shot():
 
 
 def cmd_filter(args) -> int:
-    from ._report import data_faults, estimate_faults, write_estimates
+    from ._report import bias_step_findings, data_faults, estimate_faults, write_estimates
     from ._run import filter_sessions
 
     method = _check_methods([args.method])[0]
@@ -131,6 +131,7 @@ def cmd_filter(args) -> int:
     _warn(args, data_faults([session], params, _gaps(args), method, [est.faults],
                             args.faults)[1])
     _warn(args, estimate_faults([session], method, [est]))
+    _warn(args, bias_step_findings([session], method, [est], params, args.faults)[1])
     write_estimates(args.output, session, est)
     _say(args, f"wrote {args.output}: {session.n_steps} rows of {method} estimates "
                f"({est.path} path)")
