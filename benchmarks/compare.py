@@ -59,6 +59,7 @@ sys.path.insert(0, os.path.dirname(__file__))
 from _machine import machine, require_peers  # noqa: E402
 
 from kckf_jax import (  # noqa: E402
+    KCKF,
     PacketParser,
     Params,
     Robot,
@@ -75,7 +76,7 @@ from kckf_jax import (  # noqa: E402
     run_filter,
     simulate,
 )
-from kckf_jax._model import full_state, paper_matrices, structure  # noqa: E402 (internals)
+from kckf_jax._model import full_state, paper_matrices  # noqa: E402 (internals)
 
 enable_cpu_loops()  # XLA's CPU loops as one kernel each, before any computation
 
@@ -106,7 +107,7 @@ def peer_model(params: Params):
     R = np.zeros((H.shape[0], H.shape[0]))
     R[: robot.n_hall, : robot.n_hall] = pm.R
     R[robot.n_hall:, robot.n_hall:] = CONSTRAINT_VAR * np.eye(robot.n_torso_axes)
-    st = structure(robot, "kckf")
+    st = KCKF().structure(robot)
     K = robot.n_angles
     x0 = np.zeros(2 * K)
     # The KCKF's prior satisfies the constraint: P0 = T diag(p0) T^T in the paper's order.
@@ -257,7 +258,7 @@ def flops_bytes(robot: Robot, dtype_bytes: int) -> dict:
     mean only. Bytes: the row read (dt, gyro, Hall) and the estimate written (angles, std,
     bias); the state stays in cache.
     """
-    st = structure(robot, "kckf")
+    st = KCKF().structure(robot)
     nz, ny, m = st.n_z, st.n_z + st.n_e, st.m
     F = (st.F0 != 0) | (st.F1 != 0)
     nnzF = int(F.sum())

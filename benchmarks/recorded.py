@@ -54,7 +54,7 @@ from _machine import machine, require_peers  # noqa: E402
 
 import kckf_jax as kk  # noqa: E402
 from kckf_jax import enable_cpu_loops  # noqa: E402
-from kckf_jax._model import full_state, paper_matrices, structure  # noqa: E402 (internals)
+from kckf_jax._model import full_state, paper_matrices  # noqa: E402 (internals)
 
 enable_cpu_loops()  # XLA's CPU loops as one kernel each, before any computation
 
@@ -209,7 +209,7 @@ def peer_rows(params, s):
         bad = ~np.isfinite(held[t])
         held[t, bad] = held[t - 1, bad] if t else 0.0
     u = np.concatenate([np.zeros((1, held.shape[1])), held[:-1]], axis=0)
-    st = structure(robot, "kckf")
+    st = kk.KCKF().structure(robot)
     P0b = np.asarray(kk.init_state(p64).P)
     _, P0 = full_state(st, np.zeros(P0b.shape[:2]), P0b)
     return dict(F=F, B=B, Q=Q, H=H, R=R, y=y, u=u, present=present, x0=np.zeros(N), P0=P0)

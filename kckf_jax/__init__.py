@@ -7,6 +7,9 @@ The public API (everything else lives in private modules; docs/architecture.md m
   ``params_to_dict``; ``SensorEffects`` (learned sensor effects beyond the paper's models,
   each off unless named in ``EFFECTS``: a clock offset, gyro scales, the joints' play, Hall
   curves beyond Eq. 1; ``Params.with_effects``);
+* the filters as model objects (every ``method`` argument takes the object or its name):
+  ``AbstractModel``, ``KCKF``, ``KF``, ``ExactKCKF``, ``Gyro``, ``HallL``, ``HallR``;
+  ``MODELS`` (the one table of names), ``model_of``, ``register_model``;
 * the filter's kernel: ``SensorSeries``, ``FilterState``, ``Estimate``, ``METHODS``,
   ``init_state``, ``step``, ``scan_filter``, ``pad_series`` (the state's block layout and
   the paper's matrices are internals: ``kckf_jax._model``, which benchmarks and tests read);
@@ -57,6 +60,7 @@ The public API (everything else lives in private modules; docs/architecture.md m
 The other papers' systems are in ``kckf_jax.filters``.
 """
 
+from ._batching import pad_series as pad_series
 from ._bias_steps import bias_steps as bias_steps
 from ._cpu_loops import CpuLoops as CpuLoops
 from ._cpu_loops import cpu_loops as cpu_loops
@@ -88,7 +92,6 @@ from ._kernel import Estimate as Estimate
 from ._kernel import FilterState as FilterState
 from ._kernel import SensorSeries as SensorSeries
 from ._kernel import init_state as init_state
-from ._kernel import pad_series as pad_series
 from ._kernel import scan_filter as scan_filter
 from ._kernel import step as step
 from ._likelihood import hall_nll as hall_nll
@@ -96,6 +99,16 @@ from ._limits import SensorLimits as SensorLimits
 from ._metrics import fused_hall_error as fused_hall_error
 from ._metrics import rmse_table as rmse_table
 from ._mismatch import model_mismatch as model_mismatch
+from ._models import KCKF as KCKF
+from ._models import KF as KF
+from ._models import MODELS as MODELS
+from ._models import AbstractModel as AbstractModel
+from ._models import ExactKCKF as ExactKCKF
+from ._models import Gyro as Gyro
+from ._models import HallL as HallL
+from ._models import HallR as HallR
+from ._models import model_of as model_of
+from ._models import register_model as register_model
 from ._observability import observability_ranks as observability_ranks
 from ._params import Params as Params
 from ._params import ParamsFileError as ParamsFileError

@@ -38,11 +38,9 @@ from collections.abc import Mapping, Sequence
 import equinox as eqx
 import numpy as np
 
-from ._exact import exact_model
 from ._gaps import GapPolicy, find_gaps, segments
-from ._kernel import KALMAN_METHODS
 from ._likelihood import innovations as _step_innovations
-from ._model import structure
+from ._models import AbstractModel, method_name, model_of
 from ._params import Params
 from ._robot import Robot
 from ._run import session_params, session_series
@@ -98,10 +96,9 @@ def channel_names(robot: Robot, method: str, nb: int, m: int) -> list[str | None
     joint coordinates in order for ``kckf3d`` (one block); ``"block b, row i"`` where no
     layout matches the shape."""
     names = robot.joint_angle_names
-    if method == "kckf3d" and (nb, m) == (1, exact_model(robot).J):
-        return list(names)
-    if method in ("kckf", "kf"):
-        ji = structure(robot, method).joint_index
+    model = model_of(method)
+    if model.kalman:
+        ji = np.asarray(model.innovation_channels(robot))
         if ji.shape == (nb, m):
             return [names[j] if j >= 0 else None for j in ji.reshape(-1)]
     return [f"block {b}, row {i}" for b in range(nb) for i in range(m)]
@@ -391,9 +388,9 @@ def _innovations(params, series, method):
 
 
 def diagnostics(sessions: Sequence[Session], estimates: Sequence, innovations:
-                Sequence | None = None, params: Params | None = None, method: str = "kckf",
-                lags: int = 20, gaps: GapPolicy = GapPolicy(), burn_in_s: float = 0.0
-                ) -> Diagnostics:
+                Sequence | None = None, params: Params | None = None,
+                method: str | AbstractModel = "kckf", lags: int = 20,
+                gaps: GapPolicy = GapPolicy(), burn_in_s: float = 0.0) -> Diagnostics:
     """Where a Kalman filter's error comes from, on recorded sessions (docs/diagnostics.md):
     the whiteness of its normalised innovations and the decomposition of its estimates'
     error against motion capture.
@@ -422,6 +419,7 @@ def diagnostics(sessions: Sequence[Session], estimates: Sequence, innovations:
         >>> sorted(d.to_json())
         ['decomposed', 'errors', 'lags', 'whiteness', 'whiteness_of']
     """
+    method = method_name(method)
     if not sessions:
         raise ValueError("diagnostics: no sessions")
     if len(estimates) != len(sessions):
@@ -433,7 +431,7 @@ def diagnostics(sessions: Sequence[Session], estimates: Sequence, innovations:
     angles = [np.asarray(getattr(e, "angles", e), np.float64) for e in estimates]
     decomposed = ("estimates" if any(x is None for x in paths) else
                   "smoothed" if all(x.startswith("smoothed") for x in paths) else "filtered")
-    if innovations is None and method in KALMAN_METHODS:
+    if innovations is None and model_of(method).kalman:
         innovations = session_innovations(sessions, method, params, gaps)
     white = ()
     if innovations is not None:

@@ -19,6 +19,7 @@ from ._atomic import atomic_write
 from ._gaps import GapPolicy
 from ._health import init_health
 from ._kernel import estimated, init_state
+from ._models import AbstractModel, method_name
 from ._params import Params, get_leaf, leaf_names
 from ._screen import FAULT_KINDS
 from ._stream import stream_step_fn
@@ -26,14 +27,14 @@ from ._stream import stream_step_fn
 MAGIC = b"KCKF-JAXEXPORT/1\n"
 
 
-def export_step(params: Params, path: str, method: str = "kckf", baked: bool = True,
+def export_step(params: Params, path: str, method: str | AbstractModel = "kckf", baked: bool = True,
                 gaps: GapPolicy = GapPolicy()) -> int:
     """Write the per-packet step of ``method`` to ``path``; returns the file size in bytes.
 
     Args:
         params: the filter parameters (their dtype is the exported precision).
         path: output file (``.jaxexport``).
-        method: one of ``METHODS``.
+        method: a model of ``_models`` or its name (``METHODS``).
         baked: bake the parameters into the program (default); otherwise the program takes
             the vector of unconstrained parameter leaves as its first input, so new fitted
             parameters can be loaded without exporting again.
@@ -44,6 +45,7 @@ def export_step(params: Params, path: str, method: str = "kckf", baked: bool = T
     the loader names faulty readings (``masked``, by column and kind: the header's
     ``fault_kinds``).
     """
+    method = method_name(method)
     robot = params.robot
     dtype = params.log_q.dtype
     fn, flatten, _ = stream_step_fn(params, method, health=True)

@@ -24,11 +24,13 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
+from ._batching import pad_series
 from ._effects import EFFECT_OF_LEAF, EFFECTS, angle_rates
 from ._fault_policy import FaultPolicy
 from ._gaps import GapPolicy
-from ._kernel import KALMAN_METHODS, SensorSeries, init_state, pad_series
+from ._kernel import KALMAN_METHODS, SensorSeries, init_state
 from ._likelihood import hall_nll
+from ._models import MODELS, AbstractModel, method_name, register_model
 from ._params import ALL_LEAVES, Params, with_floors
 from ._paths import AbstractPath, Auto, Sequential, as_path, regular_step
 from ._run import choose_path, screened
@@ -123,7 +125,7 @@ def auto_chunk(T: int, trials: int = 1) -> int | None:
 
 
 # ----------------------------------------------------------------------------- loss
-def per_angle_rmse(params: Params, batch: Batch, method: str = "kckf",
+def per_angle_rmse(params: Params, batch: Batch, method: str | AbstractModel = "kckf",
                    remat_chunk: int | None = None, path: str | AbstractPath | None = None,
                    smooth: bool = False) -> tuple[Array, Array]:
     """Pooled RMSE (rad) of every angle over all trials and steps with truth, and the counts.
@@ -142,6 +144,7 @@ def per_angle_rmse(params: Params, batch: Batch, method: str = "kckf",
     NaN-free by construction: missing truth is masked before it is subtracted, and the square
     root is guarded, so neither the loss nor its gradient is NaN when truth is missing.
     """
+    method = method_name(method)
     path = Auto().for_loss(remat_chunk, gradient=False) if path is None else as_path(path)
     if smooth:
         angles = smooth_batch(params, batch.series, method, path=path).angles
@@ -160,12 +163,13 @@ def per_angle_rmse(params: Params, batch: Batch, method: str = "kckf",
     return jnp.sqrt(mse + 1e-18), n
 
 
-def loss_fn(params: Params, batch: Batch, method: str = "kckf",
+def loss_fn(params: Params, batch: Batch, method: str | AbstractModel = "kckf",
             remat_chunk: int | None = None, path: str | AbstractPath | None = None,
             smooth: bool = False) -> Array:
     """Mean over angles (joints and torso) of the pooled RMSE, rad: the quantity
     ``kckf evaluate`` reports as ``mean_rmse_deg``. Angles without truth are left out.
     ``path`` and ``smooth`` as for ``per_angle_rmse``."""
+    method = method_name(method)
     rmse, n = per_angle_rmse(params, batch, method, remat_chunk, path, smooth)
     has = n > 0
     return jnp.sum(jnp.where(has, rmse, 0.0)) / jnp.maximum(jnp.sum(has), 1)
@@ -326,7 +330,8 @@ class FitConfig:
         remat_chunk: chunk length for checkpointing the scan (default: about sqrt(T)).
         checkpoint_every: steps between checkpoints (when a checkpoint path is given).
         seed: makes minibatch draws deterministic.
-        method: the filter to fit (``"kckf"``, ``"kf"`` or ``"kckf3d"``).
+        method: the filter to fit: a Kalman model of ``_models`` (``KCKF``, ``KF``,
+            ``ExactKCKF``, one registered) or its name (``"kckf"``, ``"kf"``, ``"kckf3d"``).
         loss: ``"rmse"`` (the mean RMSE against motion capture), ``"nll"`` (the negative
             log-likelihood of the Hall readings: no motion capture needed) or ``"rmse+nll"``.
         nll_weight: ``rmse+nll``'s weight on the likelihood, in deg of RMSE per nat per
@@ -351,7 +356,7 @@ class FitConfig:
     remat_chunk: int | None = None
     checkpoint_every: int = 10
     seed: int = 0
-    method: str = "kckf"
+    method: str | AbstractModel = "kckf"
     loss: str = "rmse"
     nll_weight: float = NLL_WEIGHT
     smooth: bool = False
@@ -364,7 +369,13 @@ class FitConfig:
         if unknown:
             raise ValueError(f"FitConfig.learn: unknown effect {unknown[0]!r}; expected some "
                              f"of {', '.join(EFFECTS)}")
-        if self.smooth and self.method not in KALMAN_METHODS:
+        model = self.method
+        if isinstance(model, AbstractModel):  # the object for its name (``_models``)
+            object.__setattr__(self, "method", register_model(model))
+        else:
+            model = MODELS.get(model) if isinstance(model, str) else None
+        kalman = model is not None and model.kalman
+        if self.smooth and not kalman:
             raise ValueError(f"FitConfig.smooth: smoothing needs a Kalman method, got "
                              f"{self.method!r}")
         unknown = sorted(set(self.freeze) - set(ALL_LEAVES))
@@ -377,7 +388,7 @@ class FitConfig:
             raise ValueError(f"FitConfig.freeze: {off[0]!r} belongs to the effect "
                              f"{effect[off[0]]!r}, which is not learned: add it to learn (its "
                              "value then comes from the starting parameters) or leave it out")
-        if self.method not in KALMAN_METHODS:
+        if not kalman:
             raise ValueError(f"FitConfig.method: expected one of {', '.join(KALMAN_METHODS)}, "
                              f"got {self.method!r}")
         if self.loss not in LOSSES:

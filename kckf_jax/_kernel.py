@@ -1,21 +1,15 @@
 """The filter's kernel: its types, the block operations, ``step`` and ``scan_filter``.
 
 ``step(params, state, inputs, method) -> (state, estimate)`` is the only implementation of
-each method; ``scan_filter`` strings it together with ``lax.scan`` over a recording. Every way
-of computing the filter (``_paths``: sequential, steady, parallel, ...), the streaming filter
-and the exported step are built on what is here; this module imports none of them.
+each method (a model of ``_models`` or its name); ``scan_filter`` strings it together with
+``lax.scan`` over a recording. Every way of computing the filter (``_paths``: sequential,
+steady, parallel, ...), the streaming filter and the exported step are built on what is
+here; this module imports none of them.
 
-Methods:
-
-* ``"kckf"``: the Kinematically Constrained KF (paper Sec. 3.2): Hall updates plus the
-  forward-kinematics constraint ``sum theta = phi`` as a perfect measurement;
-* ``"kf"``: the same filter without the constraint (the paper's "Std KF");
-* ``"gyro"``: integrated gyro differences (Eq. 2), from zero (the neutral pose);
-* ``"hall_l"``, ``"hall_r"``: one side's Hall sensor alone through Eq. 1 (a missing reading
-  holds the last one); they give no torso angle;
-* ``"kckf3d"``: the KCKF on the chain's exact kinematics (finite rotations: ``_exact.py``),
-  for robots that turn about more than one axis; to first order in the angles it is
-  ``"kckf"``.
+The methods are models (``_models``: ``KCKF``, ``KF``, ``Gyro``, ``HallL``, ``HallR``,
+``ExactKCKF``; ``MODELS`` names them): ``init_state`` and ``step`` compute each by its class,
+``kalman_step_moments`` the Kalman ones from the linear block arithmetic here or the exact
+model's (``_exact.py``).
 
 Conventions shared with the NumPy reference in ``tests/``:
 
@@ -51,27 +45,34 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from . import _exact
+from ._chunked_scan import chunked_scan
 from ._custom_types import BlockCov, BlockHall, BlockRates, BlockState, BlockValid
 from ._effects import corrected_readings, timed_hold
 from ._hall import hall_angle, hall_slope
 from ._health import screened_series
 from ._kalman import coordinate_update, fused_pairs, symmetrise
 from ._model import (
-    FILTER_METHODS,
     ProcessNoise,
     block_gather,
     initial_covariance,
     predicted_moments,
     q_blocks,
     static_take,
-    structure,
+)
+from ._models import (
+    KALMAN_METHODS,
+    METHODS,
+    AbstractHall,
+    AbstractLinearKalman,
+    AbstractModel,
+    ExactKCKF,
+    Gyro,
+    model_of,
 )
 from ._params import Params
 from ._screen import screen
 
-METHODS = ("kckf", "kf", "gyro", "hall_l", "hall_r", "kckf3d")
-#: The Kalman methods: a covariance, a likelihood, a smoother.
-KALMAN_METHODS = (*FILTER_METHODS, "kckf3d")
+__all__ = ["KALMAN_METHODS", "METHODS"]  # the table's (``_models``), re-exported
 
 
 class SensorSeries(eqx.Module):
@@ -151,40 +152,51 @@ class Estimate(eqx.Module):
                 if np.isfinite(values[..., k]).any()}
 
 
-def check_method(method: str) -> None:
-    """A ``ValueError`` naming the known methods unless ``method`` is one of ``METHODS``."""
-    if method not in METHODS:
-        raise ValueError(f"unknown method {method!r}; expected one of {', '.join(METHODS)}")
+def check_method(method: str | AbstractModel) -> None:
+    """A ``ValueError`` naming the known methods unless ``method`` is a model or the name of
+    one (``_models.MODELS``)."""
+    model_of(method)
 
 
-def estimated(robot, method: str) -> np.ndarray:
+def estimated(robot, method: str | AbstractModel) -> np.ndarray:
     """Which of ``robot.angle_names`` ``method`` estimates (``K`` bools): every angle, except
-    the torso angles for the single-sensor Hall baselines."""
-    check_method(method)
-    out = np.ones(robot.n_angles, bool)
-    if method in ("hall_l", "hall_r"):
-        out[robot.n_joint_axes:] = False
-    return out
+    the torso angles for the single-sensor Hall baselines (``AbstractModel.torso``)."""
+    return model_of(method).estimated(robot)
 
 
-def init_state(params: Params, method: str = "kckf") -> FilterState:
-    """The state before the first row: zero angles and biases, covariance from ``params``."""
-    check_method(method)
+def init_state(params: Params, method: str | AbstractModel = "kckf") -> FilterState:
+    """The state before the first row: zero angles and biases, covariance from ``params``
+    (by the model's kind: ``_models``)."""
+    model = model_of(method)
     robot = params.robot
     dtype = params.log_q.dtype
     hold = jnp.zeros(3 * robot.n_links, dtype)
-    if method in FILTER_METHODS:
-        st = structure(robot, method)
-        P0 = initial_covariance(st, params)
+    if isinstance(model, AbstractLinearKalman):
+        P0 = initial_covariance(model.structure(robot), params)
         return FilterState(jnp.zeros(P0.shape[:2], dtype), P0, hold)
-    if method == "kckf3d":
-        model = _exact.exact_model(robot)
-        p0_bias = _exact.gyro_bias_noise(model, params.q, params.bias_rw, params.p0_bias)[2]
-        P0 = _exact.initial_covariance(model, params.p0_angle, p0_bias)[None].astype(dtype)
+    if isinstance(model, ExactKCKF):
+        exact = _exact.exact_model(robot)
+        p0_bias = _exact.gyro_bias_noise(exact, params.q, params.bias_rw, params.p0_bias)[2]
+        P0 = _exact.initial_covariance(exact, params.p0_angle, p0_bias)[None].astype(dtype)
         return FilterState(jnp.zeros(P0.shape[:2], dtype), P0, hold)
-    n = robot.n_angles if method == "gyro" else robot.n_joint_axes
-    z0 = jnp.zeros(n, dtype) if method == "gyro" else jnp.full(n, jnp.nan, dtype)
-    return FilterState(z0, jnp.zeros((0, 0), dtype), hold)
+    if isinstance(model, Gyro):
+        return baseline_state(params, robot.n_angles, 0.0)
+    if isinstance(model, AbstractHall):
+        return baseline_state(params, robot.n_joint_axes, np.nan)
+    raise _no_kernel(model)
+
+
+def _no_kernel(model) -> TypeError:
+    return TypeError(f"{type(model).__name__}: the kernel has no step for this kind of model; "
+                     "subclass one of kckf_jax's models (KCKF, KF, ExactKCKF, Gyro, HallL, "
+                     "HallR)")
+
+
+def baseline_state(params: Params, n: int, fill: float) -> FilterState:
+    """A baseline's state: ``n`` angles at ``fill``, no covariance, the gyros' hold."""
+    dtype = params.log_q.dtype
+    return FilterState(jnp.full(n, fill, dtype), jnp.zeros((0, 0), dtype),
+                       jnp.zeros(3 * params.robot.n_links, dtype))
 
 
 @eqx.filter_jit  # one program, not a dozen op-by-op ones, when called outside a trace
@@ -370,18 +382,23 @@ class StepMoments(eqx.Module):
 
 
 def kalman_step_moments(params: Params, state: FilterState, inputs: SensorSeries,
-                        method: str) -> tuple[FilterState, Estimate, StepMoments]:
-    """``step`` of a Kalman method (``KALMAN_METHODS``), and its ``StepMoments``."""
+                        method: str | AbstractModel) -> tuple[FilterState, Estimate,
+                                                              StepMoments]:
+    """``step`` of a Kalman model (``_models.AbstractKalman``: its ``moments`` and
+    ``estimate``), and its ``StepMoments``."""
+    model = model_of(method)
     kept = state  # what a skipped update keeps
-    state, inputs = _row_inputs(params, state, inputs, method)
+    state, inputs = _row_inputs(params, state, inputs, model)
     F = None
-    if method == "kckf3d":
-        z, P, y, S, F, nu, s, vb, dt = _exact_parts(params, state, inputs)
-    else:
-        st = structure(params.robot, method)
+    if isinstance(model, ExactKCKF):
+        z, P, y, S, F, nu, s, vb, dt = exact_parts(params, state, inputs)
+    elif isinstance(model, AbstractLinearKalman):
+        st = model.structure(params.robot)
         dt, rates, noise, hb, rb, vb = block_inputs(params, st, state.gyro_hold, inputs)
         z, P, y, S, nu, s = jax.vmap(lambda *a: block_step(st, *a, dt))(
             state.z, state.P, rates, *noise, hb, rb, vb)
+    else:
+        raise _no_kernel(model)
     gyro = inputs.gyro.astype(state.z.dtype)
     hold = jnp.where(jnp.isfinite(gyro), gyro, state.gyro_hold)
     # An update that is not finite (a time step so long that the prediction overflows) is
@@ -389,13 +406,21 @@ def kalman_step_moments(params: Params, state: FilterState, inputs: SensorSeries
     ok = jnp.isfinite(z).all() & jnp.isfinite(P).all()
     new = jax.tree_util.tree_map(lambda a, b: jnp.where(ok, a, b), FilterState(z, P, hold),
                                  kept)
-    est = (exact_block_estimate(params.robot, new.z, new.P) if method == "kckf3d"
-           else block_estimate(st, new.z, new.P))
+    est = model_estimate(params.robot, model, new.z, new.P)
     return new, dataclasses.replace(est, skipped=~ok), StepMoments(y, S, nu, s, vb & ok, dt,
                                                                    ~ok, F)
 
 
-def _exact_parts(params: Params, state: FilterState, inputs: SensorSeries):
+def model_estimate(robot, method: str | AbstractModel, z: BlockState, P: BlockCov
+                   ) -> Estimate:
+    """A Kalman model's ``Estimate`` of its block state ``z`` and covariance ``P``."""
+    model = model_of(method)
+    if isinstance(model, ExactKCKF):
+        return exact_block_estimate(robot, z, P)
+    return block_estimate(model.structure(robot), z, P)
+
+
+def exact_parts(params: Params, state: FilterState, inputs: SensorSeries):
     """One ``kckf3d`` step (``_exact.exact_step``) laid out as one block (``Nb = 1``)."""
     dtype = state.z.dtype
     model = _exact.exact_model(params.robot)
@@ -413,11 +438,8 @@ def exact_block_estimate(robot, z: BlockState, P: BlockCov) -> Estimate:
     return Estimate(*_exact.exact_estimate(_exact.exact_model(robot), z[0], P[0]))
 
 
-def _kalman_step(params: Params, state: FilterState, inputs: SensorSeries, method: str):
-    return kalman_step_moments(params, state, inputs, method)[:2]
-
-
-def _row_inputs(params: Params, state: FilterState, inputs: SensorSeries, method: str):
+def _row_inputs(params: Params, state: FilterState, inputs: SensorSeries,
+                method: str | AbstractModel):
     """One row as the step uses it (``plausible``), and the state whose hold the prediction
     integrates: a row that comes alone (a stream's packet, not a row of a corrected recording)
     has its learned gyro timing applied here, with the hold (``_effects.timed_hold``); the
@@ -432,47 +454,66 @@ def _row_inputs(params: Params, state: FilterState, inputs: SensorSeries, method
     return state, inputs
 
 
-def _baseline_step(params: Params, state: FilterState, inputs: SensorSeries, method: str):
-    robot = params.robot
+def gyro_step(params: Params, state: FilterState, inputs: SensorSeries,
+              model: AbstractModel):
+    """``Gyro``'s step: the joint and torso rates of the previous row integrated (Eq. 2)."""
+    state, inputs = _row_inputs(params, state, inputs, model)
+    plus, minus = params.robot.rate_pairs
+    rates = state.gyro_hold[plus] - state.gyro_hold[minus]
+    z = state.z + inputs.dt.astype(state.z.dtype) * rates
+    return _baseline_out(params, state, inputs, z, z)
+
+
+def hall_step(params: Params, state: FilterState, inputs: SensorSeries,
+              model: AbstractModel):
+    """A Hall baseline's step (``AbstractHall``): its side's sensor of each joint axis
+    through Eq. 1, the last angle held where it has no reading."""
+    state, inputs = _row_inputs(params, state, inputs, model)
     dtype = state.z.dtype
-    K, J = robot.n_angles, robot.n_joint_axes
+    angle, _, valid = hall_measurements(params, inputs.hall_v.astype(dtype))
+    side = model.side
+    z = jnp.where(valid[side::2], angle[side::2], state.z)
+    K, J = params.robot.n_angles, params.robot.n_joint_axes
+    return _baseline_out(params, state, inputs, z,
+                         jnp.concatenate([z, jnp.full(K - J, jnp.nan, dtype)]))
+
+
+def _baseline_out(params, state, inputs, z, angles):
+    dtype = state.z.dtype
     gyro = inputs.gyro.astype(dtype)
-    nan_k = jnp.full(K, jnp.nan, dtype)
-    if method == "gyro":
-        plus, minus = robot.rate_pairs
-        rates = state.gyro_hold[plus] - state.gyro_hold[minus]
-        z = state.z + inputs.dt.astype(dtype) * rates
-        angles = z
-    else:
-        angle, _, valid = hall_measurements(params, inputs.hall_v.astype(dtype))
-        side = 0 if method == "hall_l" else 1
-        z = jnp.where(valid[side::2], angle[side::2], state.z)
-        angles = jnp.concatenate([z, jnp.full(K - J, jnp.nan, dtype)])
+    nan_k = jnp.full(params.robot.n_angles, jnp.nan, dtype)
     hold = jnp.where(jnp.isfinite(gyro), gyro, state.gyro_hold)
     return FilterState(z, state.P, hold), Estimate(angles, nan_k, nan_k, jnp.zeros((), bool))
 
 
 def step(
-    params: Params, state: FilterState, inputs: SensorSeries, method: str = "kckf"
+    params: Params, state: FilterState, inputs: SensorSeries,
+    method: str | AbstractModel = "kckf"
 ) -> tuple[FilterState, Estimate]:
-    """One time step of ``method``: predict from the previous row, then update with this row.
+    """One time step of ``method`` (a model of ``_models`` or its name): predict from the
+    previous row, then update with this row.
 
     Pure and jit-friendly (``method`` must be static). ``inputs`` is one row of a
     ``SensorSeries``; a reading outside ``params.limits`` counts as missing.
     """
-    check_method(method)
-    if method in KALMAN_METHODS:
-        return _kalman_step(params, state, inputs, method)
-    return _baseline_step(params, *_row_inputs(params, state, inputs, method), method)
+    model = model_of(method)
+    if model.kalman:
+        return kalman_step_moments(params, state, inputs, model)[:2]
+    if isinstance(model, Gyro):
+        return gyro_step(params, state, inputs, model)
+    if isinstance(model, AbstractHall):
+        return hall_step(params, state, inputs, model)
+    raise _no_kernel(model)
 
 
-def exact_kinematics(method: str) -> bool:
+def exact_kinematics(method: str | AbstractModel) -> bool:
     """Whether ``method`` models the chain's exact kinematics (``kckf3d``): then no two gyro
-    channels measure the same rate (``_screen.stand_ins``)."""
-    return method == "kckf3d"
+    channels measure the same rate (``_screen.stand_ins``; ``AbstractModel.gyro_pairs``)."""
+    return not model_of(method).gyro_pairs
 
 
-def plausible(params: Params, series: SensorSeries, method: str = "kckf") -> SensorSeries:
+def plausible(params: Params, series: SensorSeries, method: str | AbstractModel = "kckf"
+              ) -> SensorSeries:
     """``series`` (a row, a recording or a batch) as the filter uses it (``_screen.screen``):
     every reading that cannot be a measurement (outside ``params.limits``, a railed Hall
     sensor, an angle no joint reaches, a saturated gyro) made missing. Given a recording or a
@@ -505,7 +546,7 @@ def corrected(params: Params, series: SensorSeries) -> SensorSeries:
 
 
 def scan_filter(
-    params: Params, series: SensorSeries, method: str = "kckf",
+    params: Params, series: SensorSeries, method: str | AbstractModel = "kckf",
     state: FilterState | None = None, remat_chunk: int | None = None,
 ) -> tuple[FilterState, Estimate]:
     """``lax.scan`` of ``step`` over one trial (not jitted: the building block of
@@ -532,64 +573,3 @@ def scan_filter(
         return jax.lax.scan(jax.checkpoint(body), state, series)
     # Padding rows (dt = 0, every reading missing) are no-op steps.
     return chunked_scan(body, state, series, int(remat_chunk), (0.0, jnp.nan, jnp.nan))
-
-
-def chunked_scan(body, carry, rows, chunk: int, fill):
-    """``lax.scan(body, carry, rows)`` in checkpointed chunks of ``chunk`` rows (each chunk's
-    intermediates recomputed under reverse mode): the rows padded at the end with ``fill``
-    (one scalar per leaf of ``rows``, in ``tree_leaves`` order, making no-op rows), the
-    outputs cut back to ``T``."""
-    T = jax.tree_util.tree_leaves(rows)[0].shape[0]
-    n = -(-T // chunk)
-    pad = n * chunk - T
-
-    def padded(x, value):
-        return jnp.pad(x, [(0, pad)] + [(0, 0)] * (x.ndim - 1), constant_values=value)
-
-    leaves, tree = jax.tree_util.tree_flatten(rows)
-    rows = jax.tree_util.tree_unflatten(tree, [padded(x, v) for x, v in zip(leaves, fill,
-                                                                             strict=True)])
-    chunks = jax.tree_util.tree_map(lambda x: x.reshape((n, chunk) + x.shape[1:]), rows)
-
-    # Within a chunk each row is checkpointed too (3 x 10,000 recorded-like bench rows in
-    # chunks of 100, float32: the sequential path's gradient 0.82 -> 0.72 s, the same values,
-    # compile 9.2 -> 7.8 s; the lanes path's on 64 trials 4.1 -> 3.9 s, within noise).
-    @jax.checkpoint
-    def chunk_body(c, r):
-        return jax.lax.scan(jax.checkpoint(body), c, r)
-
-    final, out = jax.lax.scan(chunk_body, carry, chunks)
-    out = jax.tree_util.tree_map(lambda x: x.reshape((n * chunk,) + x.shape[2:])[:T], out)
-    return final, out
-
-
-def pad_trials(series: list, length: int | None = None, what: str = "pad_series"):
-    """Stack trials of uneven length (any series module with a ``dt`` field: ``SensorSeries``,
-    ``filters.ArmImuSeries``) into one batch: ``dt`` padded with 0, every other field with
-    NaN (missing), so padding rows are no-op steps. ``length``: the padded length (default
-    the longest trial's)."""
-    if not series:
-        raise ValueError(f"{what}: no trials given")
-    T = max(int(np.shape(s.dt)[0]) for s in series) if length is None else length
-
-    def pad(x, fill):
-        x = np.asarray(x)
-        if x.shape[0] > T:
-            raise ValueError(f"{what}: a trial has {x.shape[0]} rows, more than {T}")
-        return np.pad(x, [(0, T - x.shape[0])] + [(0, 0)] * (x.ndim - 1), constant_values=fill)
-
-    names = [f.name for f in dataclasses.fields(series[0]) if not f.metadata.get("static")]
-    return type(series[0])(**{n: np.stack([pad(getattr(s, n), 0.0 if n == "dt" else np.nan)
-                                           for s in series]) for n in names})
-
-
-def pad_series(series: list[SensorSeries], length: int | None = None) -> SensorSeries:
-    """Stack trials of uneven length into one batch; padding rows are no-op steps.
-
-    Example:
-        >>> trials = [SensorSeries(np.full(n, 0.01), np.zeros((n, 6)), np.ones((n, 2)))
-        ...           for n in (3, 5)]
-        >>> pad_series(trials).hall_v.shape
-        (2, 5, 2)
-    """
-    return pad_trials(series, length, "pad_series")

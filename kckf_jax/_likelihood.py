@@ -32,7 +32,7 @@ from jaxtyping import Array, Float
 
 from ._hall import hall_slope
 from ._kernel import SensorSeries, hall_measurements, init_states, plausible
-from ._model import structure
+from ._models import AbstractModel, structure
 from ._params import Params
 from ._paths import AbstractPath, as_path
 from ._paths._lanes import LaneState, lane_innovations_scan, lane_inputs
@@ -80,7 +80,7 @@ def lane_innovations(params: Params, batch: SensorSeries, method: str = "kckf",
     return run.rows
 
 
-def hall_nll(params: Params, series: SensorSeries, method: str = "kckf",
+def hall_nll(params: Params, series: SensorSeries, method: str | AbstractModel = "kckf",
              path: str | AbstractPath = "auto") -> Float[Array, ""]:
     """The negative log-likelihood (nats) of every Hall voltage of ``series`` (one trial ``T``
     or a batch ``B T``) given the earlier ones, per reading (the module docstring).

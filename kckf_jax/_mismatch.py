@@ -24,6 +24,7 @@ import numpy as np
 
 from ._hall import DEG, hall_exponentials
 from ._kernel import exact_kinematics
+from ._models import AbstractModel
 from ._robot import AXES
 from ._rotations import joint_rotation
 from ._screen import screen
@@ -62,7 +63,8 @@ def joint_angles_from_hall(session, params, codes=None) -> np.ndarray:
                      for j in range(J)], axis=1)
 
 
-def model_mismatch(session, method: str = "kckf", params=None, codes=None) -> list[dict]:
+def model_mismatch(session, method: str | AbstractModel = "kckf", params=None, codes=None
+                   ) -> list[dict]:
     """The paper's gyro pairs that the data show do not read the same rate, following the
     pose (module docstring): ``[{"columns": [a, b], "axis", "spread_rad_s", "corr",
     "joints", "max_angle_deg"}]``, empty where the model holds or for ``kckf3d``.

@@ -30,8 +30,6 @@ from jaxtyping import Array, ArrayLike, Float
 from ._params import Params
 from ._robot import Robot
 
-FILTER_METHODS = ("kckf", "kf")
-
 
 @dataclass(frozen=True)
 class PaperMatrices:
@@ -136,7 +134,7 @@ class Structure:
     back for every angle coordinate ``k``.
     """
 
-    method: str
+    constrained: bool
     m: int
     n_z: int
     n_e: int
@@ -170,10 +168,10 @@ class Structure:
 
 
 @functools.lru_cache(maxsize=64)
-def structure(robot: Robot, method: str) -> Structure:
-    """The constant block matrices of ``method`` (``"kckf"`` or ``"kf"``) for ``robot``."""
-    if method not in FILTER_METHODS:
-        raise ValueError(f"structure: method must be one of {FILTER_METHODS}, got {method!r}")
+def block_structure(robot: Robot, constrained: bool) -> Structure:
+    """The constant block matrices of the paper's linear filter for ``robot``: the KCKF's
+    (``constrained``: the forward-kinematics constraint) or the standard KF's
+    (``_models.structure`` by method)."""
     J, P = robot.n_joint_axes, robot.n_torso_axes
     members = [[j for j, (_, a) in enumerate(robot.joint_axes) if a == ax]
                for ax in robot.torso_axes]
@@ -183,7 +181,7 @@ def structure(robot: Robot, method: str) -> Structure:
     A1[np.arange(m + 1), m + 1 + np.arange(m + 1)] = -1.0  # Eqs. 9-11: -ts b
     Bu = np.zeros((nb, m + 1))
     Bu[np.arange(m + 1), np.arange(m + 1)] = 1.0  # Eq. 12: + ts rate
-    if method == "kf":
+    if not constrained:
         Mx = np.eye(nb)
         n_z, n_e = nb, 0
         z_p0_angle = np.r_[np.arange(m + 1), -np.ones(m + 1, int)]
@@ -211,7 +209,7 @@ def structure(robot: Robot, method: str) -> Structure:
         block_of[js], slot_of[js] = p, np.arange(len(js))
         block_of[J + p], slot_of[J + p] = p, m
     return Structure(
-        method=method, m=m, n_z=n_z, n_e=n_e,
+        constrained=constrained, m=m, n_z=n_z, n_e=n_e,
         F0=(Mx @ Minv)[:, :n_z], F1=(Mx @ A1 @ Minv)[:, :n_z], G1=Mx @ Bu,
         Ma=Mx[:, : m + 1], Mb=Mx[:, m + 1:], T=Minv[:, :n_z],
         joint_index=joint_index, angle_index=angle_index, block_of=block_of, slot_of=slot_of,

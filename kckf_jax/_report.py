@@ -19,10 +19,11 @@ from ._drift import describe_drift, hall_drift
 from ._fault_policy import FaultPolicy
 from ._gaps import GapPolicy, find_gaps
 from ._gaps import describe as describe_gaps
-from ._kernel import KALMAN_METHODS, exact_kinematics
+from ._kernel import exact_kinematics
 from ._likelihood import consistency
 from ._metrics import rmse_table
 from ._mismatch import describe_mismatch, model_mismatch
+from ._models import MODELS, AbstractModel, method_name, model_of
 from ._params import Params
 from ._paths import AbstractPath
 from ._run import filter_sessions, series_faults, session_params, session_series
@@ -32,8 +33,10 @@ from ._setup_check import describe as describe_setup
 from ._setup_check import setup_check
 
 PAPER_TABLE_METHODS = ("gyro", "hall_l", "hall_r", "kf", "kckf")
-TABLE_LABELS = {"gyro": "Gyro", "hall_l": "Hall l", "hall_r": "Hall r", "kf": "Std KF",
-                "kckf": "KCKF", "kckf_fit": "KCKF fit", "kckf_fit_smoothed": "smoothed"}
+#: The Table 1 columns' labels: each model's own (``AbstractModel.label``), and the demo's
+#: fitted columns.
+TABLE_LABELS = {**{n: m.label for n, m in MODELS.items()}, "kckf_fit": "KCKF fit",
+                "kckf_fit_smoothed": "smoothed"}
 
 
 def data_faults(sessions: Sequence[Session], params: Params | None = None,
@@ -86,7 +89,7 @@ def data_faults(sessions: Sequence[Session], params: Params | None = None,
         if pairs:
             drift[key] = pairs
             lines.append(describe_drift(key, pairs))
-        found = setup_check(s, p, exact=method == "kckf3d")
+        found = setup_check(s, p, exact=exact_kinematics(method))
         if found:
             setup[key] = [dataclasses.asdict(f) for f in found]
             lines += [f"{key}: {x}" for x in describe_setup(found)]
@@ -137,7 +140,7 @@ def bias_step_findings(sessions: Sequence[Session], method: str, estimates,
     return found, lines
 
 
-def consistency_figures(sessions: Sequence[Session], method: str, estimates,
+def consistency_figures(sessions: Sequence[Session], method: str | AbstractModel, estimates,
                         params: Params | None = None, gaps: GapPolicy = GapPolicy(),
                         innovations: Sequence | None = None
                         ) -> tuple[dict, list[np.ndarray]]:
@@ -149,6 +152,7 @@ def consistency_figures(sessions: Sequence[Session], method: str, estimates,
     per-row mean NIS (NaN where no reading was used) for the plots. The innovations are the
     filter's own: across a gap where ``gaps`` restarts the filter, they restart too.
     ``innovations``: ``session_innovations``' result, where it was computed already."""
+    method = method_name(method)
     if innovations is None:
         innovations = session_innovations(sessions, method, params, gaps)
     nis_all, nees_all, rows = [], [], []
@@ -216,9 +220,9 @@ def evaluate_sessions(sessions: Sequence[Session], methods: Sequence[str],
     # two cores an hour's 0.9 s of both takes 0.5 s).
     pool = concurrent.futures.ThreadPoolExecutor(1)
     pending = {m: pool.submit(session_innovations, sessions, m, params, gaps, faults)
-               for m in methods if m in KALMAN_METHODS}
+               for m in methods if model_of(m).kalman}
     pool.shutdown(wait=False)
-    judge = "kckf3d" if any(m == "kckf3d" for m in methods) else "kckf"
+    judge = next((m for m in methods if exact_kinematics(m)), "kckf")
     ests = {}
     if judge in methods:  # its own screening is the data's: the readings judged once
         ests[judge] = filter_sessions(sessions, judge, params, gaps=gaps, smooth=smooth,
@@ -231,7 +235,7 @@ def evaluate_sessions(sessions: Sequence[Session], methods: Sequence[str],
         warnings += lines
     out, angles, nis_rows = {}, {}, {}
     for m in methods:
-        kalman = m in KALMAN_METHODS
+        kalman = model_of(m).kalman
         est = ests.get(m) or filter_sessions(sessions, m, params, gaps=gaps,
                                              smooth=smooth and kalman, path=path,
                                              faults=faults)

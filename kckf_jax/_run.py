@@ -17,6 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
+from ._batching import pad_series
 from ._fault_policy import FaultPolicy
 from ._gaps import GapPolicy
 from ._health import screened_series
@@ -24,19 +25,18 @@ from ._kernel import (
     Estimate,
     FilterState,
     SensorSeries,
-    check_method,
     exact_kinematics,
     init_state,
     init_states,
-    pad_series,
 )
+from ._models import AbstractModel, method_name
 from ._params import Params
 from ._paths import AbstractPath, PathChoice, as_path
 from ._session import Session, split_at_gaps
 from ._smooth import smooth_batch
 
 
-def choose_path(params: Params, series: SensorSeries, method: str = "kckf",
+def choose_path(params: Params, series: SensorSeries, method: str | AbstractModel = "kckf",
                 path: str | AbstractPath = "auto", state: FilterState | None = None
                 ) -> PathChoice:
     """The path that computes ``method`` on ``series`` (one recording or a batch): ``Auto``'s
@@ -49,13 +49,13 @@ def choose_path(params: Params, series: SensorSeries, method: str = "kckf",
         >>> choice.path.name, choice.passed_over["steady"]
         ('sequential', '5 rows, not more than 4096')
     """
-    check_method(method)
+    method = method_name(method)
     return as_path(path).choose(params, series, method, state)
 
 
 def run_filter(
-    params: Params, series: SensorSeries, method: str = "kckf", state: FilterState | None = None,
-    path: str | AbstractPath = "auto",
+    params: Params, series: SensorSeries, method: str | AbstractModel = "kckf",
+    state: FilterState | None = None, path: str | AbstractPath = "auto",
 ) -> tuple[FilterState, Estimate]:
     """Filter a whole recording: ``lax.scan`` of ``step`` over the rows of ``series``, jitted.
 
@@ -63,7 +63,7 @@ def run_filter(
         params: the filter parameters (their dtype sets the computation's precision).
         series: one trial, ``dt`` of shape (T,). Use ``filter_batch`` for a batch of padded
             trials.
-        method: one of ``METHODS``.
+        method: a model of ``_models`` or its name (``METHODS``).
         state: the starting state (default ``init_state(params, method)``).
         path: how to compute it (all give the same estimates; ``docs/performance.md``): a
             path object (``Sequential()``, ``Steady(...)``, ``Parallel()``, ``Auto()``) or its
@@ -81,7 +81,7 @@ def run_filter(
         >>> est.angles.shape, est.path
         ((5, 4), 'sequential')
     """
-    check_method(method)
+    method = method_name(method)
     series, faults = screened(params, series, method)
     chosen = choose_path(params, series, method, path, state).path
     if state is None:
@@ -97,7 +97,7 @@ def _named(est: Estimate, path: AbstractPath, params: Params, faults) -> Estimat
                                faults=faults)
 
 
-def screened(params: Params, series: SensorSeries, method: str = "kckf"
+def screened(params: Params, series: SensorSeries, method: str | AbstractModel = "kckf"
              ) -> tuple[SensorSeries, Array | None]:
     """``series`` (one recording or a batch) as the filter uses it (the kernel's
     ``plausible``: judged row by row and over time), and why each reading it does not use is
@@ -134,7 +134,7 @@ def _first(x):
     return jax.tree_util.tree_map(lambda a: a[0], x)
 
 
-def filter_batch(params: Params, series: SensorSeries, method: str = "kckf",
+def filter_batch(params: Params, series: SensorSeries, method: str | AbstractModel = "kckf",
                  path: str | AbstractPath = "auto") -> Estimate:
     """``run_filter`` over a batch of trials (leading axis ``B``, padded to one length with
     ``pad_series``), one parameter set for all; ``Estimate.path`` names the path that ran.
@@ -146,7 +146,7 @@ def filter_batch(params: Params, series: SensorSeries, method: str = "kckf",
         >>> filter_batch(Params.paper_defaults(robot), pad_series(trials)).angles.shape
         (2, 7, 2)
     """
-    check_method(method)
+    method = method_name(method)
     series, faults = screened(params, series, method)
     chosen = choose_path(params, series, method, path).path
     state = init_states(params, method, jnp.shape(series.dt)[0])
@@ -215,7 +215,7 @@ def same_params(a: Params, b: Params) -> bool:
 
 
 def filter_sessions(
-    sessions: Sequence[Session], method: str = "kckf", params: Params | None = None,
+    sessions: Sequence[Session], method: str | AbstractModel = "kckf", params: Params | None = None,
     dtype=None, path: str | AbstractPath = "auto", gaps: GapPolicy = GapPolicy(),
     smooth: bool = False, faults: FaultPolicy | str | None = None,
 ) -> list[Estimate]:
@@ -231,7 +231,7 @@ def filter_sessions(
     estimates instead (``smooth_batch``; the Kalman methods), ``path`` ``"smoothed"``.
     ``faults``: the fault policy (``FaultPolicy`` or its name; default: ``params``' own, else
     ``isolate``)."""
-    check_method(method)
+    method = method_name(method)
     plist = session_params(sessions, params, dtype, faults)
     pieces = [(i, piece) for i, s in enumerate(sessions) for piece in split_at_gaps(s, gaps)]
     groups: list[tuple[Params, list[int]]] = []

@@ -25,22 +25,19 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ._exact import exact_model
 from ._kernel import (
     KALMAN_METHODS,
     Estimate,
     FilterState,
     SensorSeries,
     StepMoments,
-    block_estimate,
-    check_method,
-    exact_block_estimate,
     init_state,
     init_states,
     kalman_step_moments,
+    model_estimate,
     plausible,
 )
-from ._model import structure
+from ._models import AbstractModel, method_name, model_of, structure
 from ._params import Params
 from ._paths import AbstractPath, SmootherLayout, as_path, is_traced
 from ._paths._lanes_smooth import lane_smooth
@@ -72,7 +69,7 @@ def rts(params: Params, method: str, zs, Ps, mom: StepMoments):
     covariances per row (the last row's are its filtered ones). ``kckf3d``'s steps bring
     their own maps (``StepMoments.F``: the model linearised at each filtered state, the
     extended RTS smoother)."""
-    st = exact_model(params.robot) if method == "kckf3d" else structure(params.robot, method)
+    st = model_of(method).smoother_structure(params.robot)
     F = None if mom.F is None else mom.F[1:]
     z, P = rts_rows(st, zs[:-1], Ps[:-1], mom.y[1:], mom.S[1:], mom.dt[1:], mom.skipped[1:],
                     (zs[-1], Ps[-1]), F)
@@ -82,15 +79,11 @@ def rts(params: Params, method: str, zs, Ps, mom: StepMoments):
 def _smoothed(params: Params, series: SensorSeries, method: str, state: FilterState | None):
     _, zs, Ps, mom = filter_moments(params, series, method, state)
     z, P = rts(params, method, zs, Ps, mom)
-    if method == "kckf3d":
-        est = jax.vmap(lambda a, b: exact_block_estimate(params.robot, a, b))(z, P)
-    else:
-        st = structure(params.robot, method)
-        est = jax.vmap(lambda a, b: block_estimate(st, a, b))(z, P)
+    est = jax.vmap(lambda a, b: model_estimate(params.robot, method, a, b))(z, P)
     return dataclasses.replace(est, skipped=mom.skipped)
 
 
-def smooth(params: Params, series: SensorSeries, method: str = "kckf",
+def smooth(params: Params, series: SensorSeries, method: str | AbstractModel = "kckf",
            state: FilterState | None = None, path: str | AbstractPath = "auto") -> Estimate:
     """The fixed-interval (RTS) smoothed estimates of one recording (``run_filter``'s
     arguments; ``method`` a Kalman method: ``"kckf"``, ``"kf"``, ``"kckf3d"``): each row's
@@ -105,7 +98,7 @@ def smooth(params: Params, series: SensorSeries, method: str = "kckf",
         >>> smooth(Params.paper_defaults(robot), series).angles.shape
         (5, 2)
     """
-    _check(method)
+    method = _check(method)
     if state is None and path != "sequential":
         batch = jax.tree_util.tree_map(lambda x: jnp.asarray(x)[None], series)
         layout = _smooth_path(params, batch, method, path)
@@ -123,7 +116,7 @@ def smooth(params: Params, series: SensorSeries, method: str = "kckf",
 SMOOTH_PATHS = ("auto", "sequential", "lanes", "steady")
 
 
-def smooth_batch(params: Params, series: SensorSeries, method: str = "kckf",
+def smooth_batch(params: Params, series: SensorSeries, method: str | AbstractModel = "kckf",
                  path: str | AbstractPath = "auto") -> Estimate:
     """``smooth`` over a batch of padded trials (leading axis ``B``; ``pad_series``).
 
@@ -138,7 +131,7 @@ def smooth_batch(params: Params, series: SensorSeries, method: str = "kckf",
     moves the filter). The same estimates to rounding;
     ``Estimate.path`` is ``"smoothed"`` (sequential), ``"smoothed:lanes"`` or
     ``"smoothed:steady"``."""
-    _check(method)
+    method = _check(method)
     return _smooth_on(_smooth_path(params, series, method, path), params, series, method)
 
 
@@ -169,11 +162,13 @@ def _smooth_path(params: Params, series: SensorSeries, method: str,
     return as_path(path).smoother_layout(params, series, method)
 
 
-def _check(method: str) -> None:
-    check_method(method)
-    if method not in KALMAN_METHODS:
+def _check(method) -> str:
+    """``method``'s name (``_models.method_name``), a Kalman model's."""
+    method = method_name(method)
+    if not model_of(method).kalman:
         raise ValueError(f"smoothing needs a Kalman filter ({', '.join(KALMAN_METHODS)}), got "
                          f"{method!r}")
+    return method
 
 
 @eqx.filter_jit

@@ -15,6 +15,7 @@ import numpy as np
 
 from ._atomic import atomic_write
 from ._metrics import squared_errors
+from ._models import MODELS
 from ._report import TABLE_LABELS
 from ._session import Session
 
@@ -64,9 +65,10 @@ def colours(methods: Sequence[str]) -> dict[str, str]:
 def _style(method: str, colour: str) -> dict:
     """How ``method``'s line is drawn: a Hall sensor's (noisy) thin and pale, the gyro's
     (smooth, drifting) thin, a filter's full."""
-    if method.startswith("hall"):
+    line = MODELS[method].line if method in MODELS else "filter"  # a fit's column: a filter
+    if line == "sensor":
         return dict(color=colour, lw=0.5, alpha=0.7)
-    if method == "gyro":
+    if line == "integrated":
         return dict(color=colour, lw=0.9)
     return dict(color=colour, lw=1.3)
 

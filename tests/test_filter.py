@@ -20,7 +20,8 @@ from kckf_jax import (
     run_filter,
     step,
 )
-from kckf_jax._model import full_state, structure
+from kckf_jax._model import full_state
+from kckf_jax._models import structure
 
 
 @pytest.mark.parametrize("seed", range(6))

@@ -27,7 +27,8 @@ from .._kernel import (
     fused_pairs,
     hall_measurements,
 )
-from .._model import Structure, structure
+from .._model import Structure
+from .._models import structure
 from .._params import Params
 
 

@@ -24,7 +24,7 @@ from jaxtyping import Array, Bool, Float
 
 from .._health import screened_series
 from .._kernel import Estimate, FilterState, SensorSeries
-from .._model import FILTER_METHODS
+from .._models import model_of
 from .._params import Params
 from .._robot import Robot
 from .._screen import screen
@@ -35,11 +35,9 @@ STEP_TOL_S = 1e-9
 
 def kalman_only(method: str) -> str | None:
     """Why a path that computes the linear Kalman filters (a fixed block structure, the
-    steps' maps known before the data) does not apply to ``method`` (or ``None``)."""
-    if method == "kckf3d":
-        return ("the exact model's matrices depend on the state (kckf3d linearises every "
-                "step at its estimate): no layout precomputes them; sequential only")
-    return None if method in FILTER_METHODS else f"method {method!r} is not a Kalman filter"
+    steps' maps known before the data) does not apply to ``method`` (or ``None``: the
+    model's ``layout_reason``)."""
+    return model_of(method).layout_reason()
 
 
 class PathRun(NamedTuple):

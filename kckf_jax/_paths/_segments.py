@@ -39,7 +39,7 @@ import numpy as np
 from jaxtyping import Array, Bool
 
 from .._kernel import Estimate, FilterState, SensorSeries, plausible
-from .._model import structure
+from .._models import model_of, structure
 from .._params import Params
 from ._base import AbstractPath, PathCost, PathRun, is_traced, kalman_only
 from ._lanes import NO_OP_INPUTS, LaneRows, LaneState, lane_estimates, lane_inputs, lane_scan
@@ -92,9 +92,9 @@ class Segments(AbstractPath):
 
     def applies(self, params: Params, series: SensorSeries, method: str,
                 state: FilterState | None = None) -> str | None:
-        if method == "kf":
-            return ("the standard KF's torso angle and bias are unobservable (Eq. 21): it "
-                    "never forgets where it started, so no warm-up converges")
+        unobservable = model_of(method).unobservable
+        if unobservable is not None:
+            return f"{unobservable}: it never forgets where it started, so no warm-up converges"
         return kalman_only(method)
 
     def pays(self, series: SensorSeries, dtype) -> str | None:

@@ -35,7 +35,8 @@ from .._kernel import (
     init_state,
     plausible,
 )
-from .._model import Structure, structure
+from .._model import Structure
+from .._models import model_of, structure
 from .._params import Params
 from ._affine import (
     StepMaps,
@@ -119,9 +120,9 @@ class Steady(AbstractPath):
         why = kalman_only(method)
         if why is not None:
             return why
-        if method == "kf":
-            return ("the standard KF's torso angle and bias are unobservable (Eq. 21): its "
-                    "covariance never converges")
+        unobservable = model_of(method).unobservable
+        if unobservable is not None:
+            return f"{unobservable}: its covariance never converges"
         if params.hall_noise != "angle":
             return "the voltage noise model makes the Hall noise vary with the data"
         return None

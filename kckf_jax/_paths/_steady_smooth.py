@@ -26,7 +26,8 @@ import numpy as np
 from jaxtyping import Array, Bool, Float
 
 from .._kernel import FilterState, SensorSeries, block_estimate, init_state, plausible
-from .._model import predicted_moments, structure
+from .._model import predicted_moments
+from .._models import structure
 from .._params import Params
 from .._rts import rts_covariance, rts_gain, rts_rows
 from ._affine import output_map, reading_maps, series_inputs, step_maps

@@ -16,13 +16,12 @@ from .._health import by_policy, health_step, init_health
 from .._kernel import (
     FilterState,
     SensorSeries,
-    check_method,
     estimated,
     exact_kinematics,
     init_state,
     step,
 )
-from .._model import structure
+from .._models import AbstractModel, method_name, structure
 from .._params import Params
 from .._paths import STEP_TOL_S, Steady, converged_map, readings_present, relative_change
 from .._screen import FAULT_KINDS, screen
@@ -122,7 +121,7 @@ class StreamingFilter:
 
     Args:
         params: filter parameters (their dtype sets the precision).
-        method: one of ``METHODS``.
+        method: a model of ``_models`` or its name (``METHODS``).
         gap_s, on_gap, max_predict_s: the gap policy, as the batch filter's (``GapPolicy``):
             a time step longer than ``gap_s`` is a gap (status ``gap``), predicted across
             (``"predict"``: the covariance grows with it) or restarted from the initial state
@@ -160,10 +159,10 @@ class StreamingFilter:
         'ok'
     """
 
-    def __init__(self, params: Params, method: str = "kckf", *, gap_s: float = 0.5,
+    def __init__(self, params: Params, method: str | AbstractModel = "kckf", *, gap_s: float = 0.5,
                  on_gap: str = "predict", max_predict_s: float | None = None,
                  host_path: bool = False, steady: Steady = Steady()):
-        check_method(method)
+        method = method_name(method)
         self.params, self.method, self.robot = params, method, params.robot
         # On the host path, packets that did not come through a parser given these parameters
         # are judged here, as the step would (``_screen``): it must never use a reading the

@@ -85,8 +85,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
+from ..._batching import pad_trials
 from ..._kalman import coordinate_update, symmetrise
-from ..._kernel import pad_trials
 
 DEG = np.pi / 180.0
 GRAVITY_MPS2 = 9.81
