@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._hall import DEG, hall_exponentials
+from ._hall import DEG, hall_angle_np
 from ._stats import least_squares
 
 #: The pair's difference must move this far over the recording (deg). Clean simulated pairs
@@ -37,10 +37,7 @@ def _angles(session, params, codes) -> np.ndarray:
     v = np.asarray(session.hall_v, np.float64)
     if codes is not None:
         v = np.where(np.asarray(codes)[:, 3 * robot.n_links:] > 0, np.nan, v)
-    (w1, w2), (k1, k2) = hall_exponentials(*(np.asarray(c, np.float64)
-                                             for c in params.hall_coeffs))
-    with np.errstate(over="ignore", invalid="ignore"):
-        return w1 * np.exp(k1 * v) + w2 * np.exp(k2 * v)
+    return hall_angle_np(v, params.hall_coeffs)
 
 
 def _trend(t, y, theta) -> float:

@@ -7,7 +7,12 @@ degrees is converted on the way in). ``theta`` is strictly increasing in ``V`` f
 (its slope ``a b e^{bV} + c d e^{-dV}`` is positive), so the inverse is unique.
 
 The forward model and its slope are JAX functions (they run inside the filters and are
-differentiated when fitting); the inverse is NumPy float64 (only the simulator needs it).
+differentiated when fitting; ``hall_angle_and_slope`` both from one pair of exponentials, for
+the health monitor); ``hall_angle_np`` is the same forward model in NumPy float64 for the host's
+checks and reports, and the inverse is NumPy float64 (only the simulator needs it). Every
+module writes Eq. 1 through these (``hall_exponentials`` underneath; the stream's host path
+folds its weights into its matrix), never again by hand; ``tests/test_hall.py`` checks the
+forms against each other.
 """
 
 from __future__ import annotations
@@ -66,6 +71,26 @@ def hall_slope(
     (w1, w2), (k1, k2) = hall_exponentials(a, b, c, d, sign)
     v = jnp.asarray(v)
     return w1 * k1 * jnp.exp(k1 * v) + w2 * k2 * jnp.exp(k2 * v)
+
+
+def hall_angle_and_slope(v, w, k):
+    """Eq. (1)'s angle and the absolute value of its slope (rad, rad/V) at ``v`` from its two
+    exponentials' weights ``w = (w1, w2)`` and exponents ``k = (k1, k2)``
+    (``hall_exponentials``): the two exponentials computed once for both. JAX."""
+    (w1, w2), (k1, k2) = w, k
+    e1, e2 = jnp.exp(k1 * v), jnp.exp(k2 * v)
+    return w1 * e1 + w2 * e2, jnp.abs(w1 * k1 * e1 + w2 * k2 * e2)
+
+
+def hall_angle_np(v, coeffs) -> np.ndarray:
+    """Eq. (1) in NumPy float64: the angle (rad) of voltages ``v`` through the curves
+    ``coeffs`` (``(a, b, c, d, sign)``, each per sensor or a scalar, in radians:
+    ``Params.hall_coeffs``); NaN where ``v`` is NaN, an overflow an infinity, without a
+    warning. For the host's checks and reports (``_screen``, ``_setup_check``, ``_mismatch``,
+    ``_drift``)."""
+    (w1, w2), (k1, k2) = hall_exponentials(*(np.asarray(c, np.float64) for c in coeffs))
+    with np.errstate(over="ignore", invalid="ignore"):
+        return w1 * np.exp(k1 * v) + w2 * np.exp(k2 * v)
 
 
 def hall_voltage(

@@ -42,7 +42,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._hall import hall_exponentials
+from ._hall import hall_angle_and_slope, hall_exponentials
 from ._screen import SATURATED, screen, stand_in, stand_ins
 
 #: Codes after ``_screen.FAULT_KINDS``' (1-4; a clipped gyro is ``SATURATED``).
@@ -231,9 +231,7 @@ def health_step(params, h: Health, dt, gyro, hall_v, exact: bool = False):
 
     ok = jnp.isfinite(hall_v)
     v = jnp.where(ok, hall_v, 1.65)
-    e1, e2 = jnp.exp(k1 * v), jnp.exp(k2 * v)
-    angle = w1 * e1 + w2 * e2
-    slope = jnp.abs(w1 * k1 * e1 + w2 * k2 * e2)
+    angle, slope = hall_angle_and_slope(v, (w1, w2), (k1, k2))
     e = angle - ref[..., joint]  # residual against the reference
     judged = ok & jnp.isfinite(h.last_e) & ~fresh[..., joint]
     expect = (2.0 * (slope * sigma_v) ** 2

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._hall import DEG, hall_exponentials
+from ._hall import DEG, hall_angle_np
 from ._kernel import exact_kinematics
 from ._models import AbstractModel
 from ._robot import AXES
@@ -50,10 +50,7 @@ def joint_angles_from_hall(session, params, codes=None) -> np.ndarray:
         v = screen(params, np.asarray(session.gyro, np.float64), hall_v, np).hall_v
     else:
         v = np.where(np.asarray(codes)[:, 3 * robot.n_links:] > 0, np.nan, hall_v)
-    (w1, w2), (k1, k2) = hall_exponentials(*(np.asarray(c, np.float64)
-                                             for c in params.hall_coeffs))
-    with np.errstate(over="ignore", invalid="ignore"):
-        ang = w1 * np.exp(k1 * v) + w2 * np.exp(k2 * v)
+    ang = hall_angle_np(v, params.hall_coeffs)
     J = robot.n_joint_axes
     pair = ang.reshape(len(ang), J, 2)
     ok = np.isfinite(pair)

@@ -36,7 +36,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._hall import hall_angle, hall_exponentials
+from ._hall import hall_angle, hall_angle_np
 from ._limits import SATURATION_FRACTION
 
 #: The kinds of faulty reading, by code (``codes == k + 1`` is ``FAULT_KINDS[k]``; 0: used or
@@ -76,7 +76,7 @@ def screen(params, gyro, hall_v, xp=jnp) -> Screened:
         angle = xp.zeros_like(hall_v)
     elif xp is np:
         finite_v = np.where(np.isfinite(hall_v), hall_v, 0.5 * (lo + hi))
-        angle = _np_angle(coeffs, finite_v)
+        angle = hall_angle_np(finite_v, coeffs)
     else:
         coeffs = tuple(jax.lax.stop_gradient(c) for c in coeffs)
         finite_v = jnp.where(jnp.isfinite(hall_v), hall_v, 0.5 * (lo + hi))
@@ -88,13 +88,6 @@ def screen(params, gyro, hall_v, xp=jnp) -> Screened:
     g_used = xp.where(g_code > 0, xp.nan, gyro)
     h_used = xp.where(h_code > 0, xp.nan, hall_v)
     return Screened(g_used, h_used, g_code.astype(xp.int8), h_code.astype(xp.int8))
-
-
-def _np_angle(coeffs, v):
-    """Eq. 1 in NumPy float64 (``screen``'s host arithmetic)."""
-    (w1, w2), (k1, k2) = hall_exponentials(*(np.asarray(c, np.float64) for c in coeffs))
-    with np.errstate(over="ignore", invalid="ignore"):
-        return w1 * np.exp(k1 * v) + w2 * np.exp(k2 * v)
 
 
 #: How far inside the joints' range ``clean_bounds`` keeps its ends (relative): far above
@@ -133,14 +126,14 @@ def clean_bounds(params) -> tuple[np.ndarray, np.ndarray]:
         grid = np.linspace(a, b, 1025)
         for m in range(M):
             one = tuple(c[m] for c in cs)
-            ok = np.abs(_np_angle(one, grid)) <= reach
+            ok = np.abs(hall_angle_np(grid, one)) <= reach
             if not (all(c > 0 for c in one[:4]) and ok.any()):
                 h_lo[m], h_hi[m] = np.inf, -np.inf
                 continue
             inside = np.flatnonzero(ok)
             h_lo[m] = _edge(one, reach, grid, inside[0], -1)
             h_hi[m] = _edge(one, reach, grid, inside[-1], +1)
-            ends = _np_angle(one, np.array([h_lo[m], h_hi[m]]))
+            ends = hall_angle_np(np.array([h_lo[m], h_hi[m]]), one)
             if not np.all(np.abs(ends) <= reach):  # cannot happen for a monotone curve
                 h_lo[m], h_hi[m] = np.inf, -np.inf
     return np.r_[np.full(G, -g), h_lo], np.r_[np.full(G, g), h_hi]
@@ -157,7 +150,7 @@ def _edge(coeffs, reach, grid, i, step) -> float:
         mid = 0.5 * (good + bad)
         if mid in (good, bad):
             break
-        if abs(float(_np_angle(coeffs, np.array([mid]))[0])) <= reach:
+        if abs(float(hall_angle_np(np.array([mid]), coeffs)[0])) <= reach:
             good = mid
         else:
             bad = mid

@@ -19,7 +19,7 @@ from typing import Literal
 
 import numpy as np
 
-from ._hall import DEG, hall_exponentials
+from ._hall import DEG, hall_angle_np
 from ._health import CLIP_MIN_RAD_S, CLIP_PEAK_FRACTION, CLIP_REPEATS
 from ._params import Params
 from ._screen import screen
@@ -207,11 +207,7 @@ class _Data:
     def hall_band(self, column: int, curve: int) -> np.ndarray:
         """Hall column ``column``'s voltages through sensor ``curve``'s Eq. 1, band-passed,
         rad."""
-        a, b, c, d, sign = (x[curve] for x in self.coeffs)
-        (w1, w2), (k1, k2) = hall_exponentials(a, b, c, d, sign)
-        v = self.volts[:, column]
-        with np.errstate(over="ignore", invalid="ignore"):
-            angle = w1 * np.exp(k1 * v) + w2 * np.exp(k2 * v)
+        angle = hall_angle_np(self.volts[:, column], [x[curve] for x in self.coeffs])
         angle[~np.isfinite(angle)] = np.nan
         return self._band(angle)
 
