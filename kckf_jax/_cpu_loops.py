@@ -14,12 +14,10 @@ must come before the process's first JAX computation. No per-program mechanism c
 jax 0.10.2 and 0.12.0.1 ``jax.jit(..., compiler_options=...)`` refuses the option (it is an
 entry of the map ``xla_backend_extra_options``).
 
-Measured (AMD EPYC, 2 cores, float32, recorded-like bench rows; ``python
-benchmarks/cpu_loops.py``, figures in benchmarks/README.md), jax 0.10.2: one fitting step on
-64 x 10,000 rows 1.15 -> 0.52 s, the lanes filter of 1,024 trials x 2,000 rows 2.06 -> 0.84 s,
-the smoother on one hour 4.2 -> 1.1 s, the sequential filter on one hour 0.93 -> 0.32 s. jax
-0.12's XLA compiles these loops as one kernel without being asked (``cpu_loops()`` measures
-it), and the call changes nothing there.
+What it gains is measured by ``python benchmarks/cpu_loops.py`` (benchmarks/README.md: on jax
+0.10.2 a fitting step, the lanes filter, the smoother and the sequential filter 2.2-3.8 times
+faster). jax 0.12's XLA compiles these loops as one kernel without being asked
+(``cpu_loops()`` measures it), and the call changes nothing there.
 
 Who calls it: the ``kckf`` command, for itself; the README's API example, the notebooks,
 ``training/`` and ``benchmarks/`` show it. A library user who does not call it gets the same

@@ -76,10 +76,8 @@ class Auto(AbstractPath):
         Its hand-written reverse pass (``_lanes_adjoint``) makes the lanes gradient faster
         than the sequential path's at every batch measured, where a filter run once is done
         sooner on the sequential path below ``Lanes.min_trials`` (the lanes program compiles
-        longer; docs/performance.md). Recorded-like bench rows, float32, AMD EPYC,
-        2026-12-04, one RMSE value and gradient, each loop one kernel (``_cpu_loops``): 1 x
-        5,000 rows 12 ms against 65 ms, 8 x 5,000 63 against 151 ms (with every kernel
-        launched apart: 1 x 4,000 36 against 67 ms, 3 x 4,000 53 against 84 ms). It keeps
+        longer; docs/performance.md; the figures: benchmarks/README.md, "Measurements behind
+        the paths' choices"). It keeps
         every row's state and gains (about 1.1 kB per trial-step with the rows' inputs), so a
         gradient the sequential path would chunk for memory keeps ``lanes`` as it is."""
         lanes = Lanes(min_trials=1) if gradient and remat_chunk is None else self.lanes

@@ -318,17 +318,15 @@ class Lanes(AbstractPath):
         """``"lanes"`` on concrete inputs; inside a caller's trace (a fitting loss of the
         smoothed estimates, ``FitConfig.smooth``) ``"sequential"``: the lanes smoother has no
         hand-written reverse pass as the lanes filter has, and its automatic one costs more
-        than the vmapped sequential smoother's (16 x 2,000 recorded-like bench rows, float32,
-        AMD EPYC, 2026-12-05, one RMSE value and gradient: 3.66 s against 1.45 s; compile 48 s
-        against 24 s; the values alone 0.07 s against 0.18 s)."""
+        than the vmapped sequential smoother's (benchmarks/README.md, "Measurements behind the
+        paths' choices")."""
         if is_traced(params, series):
             return SmootherLayout("sequential")
         return SmootherLayout(self.batch_layout(int(np.shape(series.dt)[0]), method))
 
     def cost(self, n_trials: int, n_rows: int) -> PathCost:
-        """Compile 2.8 s; ``0.5 + 2 / B`` us a trial-row (the lanes fill with trials):
-        ``benchmarks/one_shot.py`` (as ``Sequential.cost``: 4 x 10,000 rows 2.73 + 0.041 s,
-        12 x 10,000 3.01 + 0.095 s, 64 x 10,000 2.96 + 0.32 s)."""
+        """Compile 2.8 s; ``0.5 + 2 / B`` us a trial-row (the lanes fill with trials): fitted to
+        ``benchmarks/one_shot.py``, as ``Sequential.cost``."""
         return PathCost(2.8, (0.5 + 2.0 / n_trials) * 1e-6 * n_trials * n_rows)
 
     def run(self, params: Params, series: SensorSeries, method: str, state: FilterState

@@ -122,8 +122,8 @@ class Segments(AbstractPath):
         return None
 
     def cost(self, n_trials: int, n_rows: int) -> PathCost:
-        """Compile 3.0 s (the first pass; a repair compiles another); 0.7 us a row:
-        ``benchmarks/one_shot.py`` (as ``Sequential.cost``: an hour 3.04 + 0.25 s)."""
+        """Compile 3.0 s (the first pass; a repair compiles another); 0.7 us a row: fitted to
+        ``benchmarks/one_shot.py``, as ``Sequential.cost``."""
         return PathCost(3.0, 0.7e-6 * n_trials * n_rows)
 
     def run(self, params: Params, series: SensorSeries, method: str, state: FilterState

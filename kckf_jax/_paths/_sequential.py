@@ -27,10 +27,8 @@ class Sequential(AbstractPath):
 
     def cost(self, n_trials: int, n_rows: int) -> PathCost:
         """Compile 1.5 s (one recording) or 2.0 s (a vmapped batch); 1.1 us a row for one
-        trial, each trial costing more in a larger batch (``1 + (B - 1) / 18`` times):
-        ``benchmarks/one_shot.py``, bench robot, float32, AMD EPYC (2 cores), jax 0.10.2,
-        2026-12-05 (an hour 1.49 + 0.40 s; 12 x 10,000 rows 2.04 + 0.27 s; 64 x 10,000
-        1.85 + 3.29 s)."""
+        trial, each trial costing more in a larger batch (``1 + (B - 1) / 18`` times): fitted
+        to ``benchmarks/one_shot.py`` (its figures: benchmarks/README.md, "one_shot.py")."""
         per_row = 1.1e-6 * (1 + (n_trials - 1) / 18)
         return PathCost(1.5 if n_trials == 1 else 2.0, per_row * n_trials * n_rows)
 
