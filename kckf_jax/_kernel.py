@@ -122,6 +122,9 @@ class Estimate(eqx.Module):
     ``filter_batch`` and ``filter_sessions``): per row and reading (``Robot.gyro_names`` then
     ``Robot.hall_names``) why the filter did not use it, a code of ``_screen.FAULT_KINDS``
     (0: used or missing); ``kk.fault_stretches`` names them by column and time.
+    ``innovations``: the fused Hall innovations ``(nu, var, valid)`` per row (``*T Nb m``)
+    where the caller asked for them (``filter_batch(..., innovations=True)``) and the path
+    computed them in the same pass (``AbstractPath.innovations_in_pass``); else ``None``.
     """
 
     angles: Float[ArrayLike, "*T K"]
@@ -129,6 +132,7 @@ class Estimate(eqx.Module):
     bias: Float[ArrayLike, "*T K"]
     skipped: Bool[ArrayLike, "*T"] | None = None
     faults: Int[ArrayLike, "*T C"] | None = None
+    innovations: tuple | None = None
     path: str | None = eqx.field(static=True, default=None)
     names: tuple[str, ...] | None = eqx.field(static=True, default=None)
 
@@ -548,6 +552,7 @@ def corrected(params: Params, series: SensorSeries) -> SensorSeries:
 def scan_filter(
     params: Params, series: SensorSeries, method: str | AbstractModel = "kckf",
     state: FilterState | None = None, remat_chunk: int | None = None,
+    innovations: bool = False,
 ) -> tuple[FilterState, Estimate]:
     """``lax.scan`` of ``step`` over one trial (not jitted: the building block of
     ``run_filter`` and of the fitting loss).
@@ -556,7 +561,9 @@ def scan_filter(
     intermediate values in the backward pass (``jax.checkpoint``), so a gradient through
     ``T`` steps stores about ``T / remat_chunk + remat_chunk`` states instead of all ``T``.
     Either way each row's intermediate values are recomputed in the backward pass (only the
-    states are stored). The forward result is unchanged.
+    states are stored). The forward result is unchanged. ``innovations`` (a Kalman method):
+    the estimate also carries each row's fused Hall innovations (``Estimate.innovations``),
+    from the same steps.
     """
     check_method(method)
     if state is None:
@@ -564,6 +571,9 @@ def scan_filter(
     series = plausible(params, series, method)
 
     def body(carry, row):
+        if innovations:
+            new, est, mom = kalman_step_moments(params, carry, row, method)
+            return new, dataclasses.replace(est, innovations=(mom.nu, mom.s, mom.valid))
         return step(params, carry, row, method)
 
     if not remat_chunk:

@@ -215,18 +215,21 @@ def evaluate_sessions(sessions: Sequence[Session], methods: Sequence[str],
     # method models them (``_screen.stand_ins``, ``setup_check``), so that the paper's
     # first-order checks do not refuse data that kckf3d is there for; each method's own
     # estimates are screened by its own model either way (``filter_sessions``).
-    # The consistency figures' innovations are a second pass over each recording: computed on
-    # another thread while the filters run (XLA computes without holding the interpreter: on
-    # two cores an hour's 0.9 s of both takes 0.5 s).
+    # The consistency figures' innovations come from the filter's own pass where its path
+    # computes them there (``Estimate.innovations``: the sequential path, which a one-shot
+    # command takes on most recordings), so each recording is filtered once. Otherwise (the
+    # smoothed estimates, another path) they are a second pass: computed on another thread
+    # while the filters run (XLA computes without holding the interpreter).
     pool = concurrent.futures.ThreadPoolExecutor(1)
     pending = {m: pool.submit(session_innovations, sessions, m, params, gaps, faults)
-               for m in methods if model_of(m).kalman}
+               for m in methods if model_of(m).kalman and smooth}
     pool.shutdown(wait=False)
     judge = next((m for m in methods if exact_kinematics(m)), "kckf")
     ests = {}
     if judge in methods:  # its own screening is the data's: the readings judged once
         ests[judge] = filter_sessions(sessions, judge, params, gaps=gaps, smooth=smooth,
-                                      path=path, faults=faults)
+                                      path=path, faults=faults,
+                                      innovations=model_of(judge).kalman and not smooth)
     found, warnings = data_faults(sessions, params, gaps, judge,
                                   [e.faults for e in ests[judge]] if ests else None, faults)
     if ests:
@@ -238,16 +241,21 @@ def evaluate_sessions(sessions: Sequence[Session], methods: Sequence[str],
         kalman = model_of(m).kalman
         est = ests.get(m) or filter_sessions(sessions, m, params, gaps=gaps,
                                              smooth=smooth and kalman, path=path,
-                                             faults=faults)
+                                             faults=faults, innovations=kalman and not smooth)
         angles[m] = [e.angles for e in est]
         out[m] = rmse_table(sessions, angles[m], burn_in_s)
         out[m]["path"] = "+".join(dict.fromkeys(e.path for e in est))
         out[m]["skipped_updates"] = int(sum(np.asarray(e.skipped).sum() for e in est))
         if kalman:
-            figures, nis_rows[m] = consistency_figures(sessions, m, est, params, gaps,
-                                                       pending[m].result())
+            # (the filter's own pass where it gave them: ``filter_passes`` 1; else a second)
+            innov = None if m in pending else _pass_innovations(est)
+            out[m]["filter_passes"] = 1 if innov is not None else 2
+            if innov is None:
+                innov = (pending[m].result() if m in pending else
+                         session_innovations(sessions, m, params, gaps, faults))
+            figures, nis_rows[m] = consistency_figures(sessions, m, est, params, gaps, innov)
             out[m].update(figures)
-            out[m]["diagnostics"] = diagnostics(sessions, est, pending[m].result(), params, m,
+            out[m]["diagnostics"] = diagnostics(sessions, est, innov, params, m,
                                                 gaps=gaps, burn_in_s=burn_in_s).to_json()
             if smooth:
                 out[m]["smoothed"] = True
@@ -261,6 +269,15 @@ def evaluate_sessions(sessions: Sequence[Session], methods: Sequence[str],
     doc = {"methods": out, "sessions": [s.path for s in sessions], **found,
            "warnings": warnings, "_nis_rows": nis_rows}
     return doc, angles
+
+
+def _pass_innovations(estimates) -> list | None:
+    """Each session's innovations from its filter's own pass (``Estimate.innovations``, as
+    ``session_innovations`` gives them: float64 ``(nu, var, valid)``), or ``None`` where a
+    session has none."""
+    if any(e.innovations is None for e in estimates):
+        return None
+    return [tuple(np.asarray(x, np.float64) for x in e.innovations) for e in estimates]
 
 
 def format_table(results: dict, robot, methods: Sequence[str], title: str = "") -> str:

@@ -29,7 +29,7 @@ from ._kernel import (
     init_state,
     init_states,
 )
-from ._models import AbstractModel, method_name
+from ._models import AbstractModel, method_name, model_of
 from ._params import Params
 from ._paths import AbstractPath, PathChoice, as_path
 from ._session import Session, split_at_gaps
@@ -135,9 +135,11 @@ def _first(x):
 
 
 def filter_batch(params: Params, series: SensorSeries, method: str | AbstractModel = "kckf",
-                 path: str | AbstractPath = "auto") -> Estimate:
+                 path: str | AbstractPath = "auto", innovations: bool = False) -> Estimate:
     """``run_filter`` over a batch of trials (leading axis ``B``, padded to one length with
     ``pad_series``), one parameter set for all; ``Estimate.path`` names the path that ran.
+    ``innovations``: the estimate also carries the fused Hall innovations of the same pass
+    where the path that ran computes them there (``Estimate.innovations``; a Kalman method).
 
     Example:
         >>> robot = Robot.from_spec("x")
@@ -150,7 +152,8 @@ def filter_batch(params: Params, series: SensorSeries, method: str | AbstractMod
     series, faults = screened(params, series, method)
     chosen = choose_path(params, series, method, path).path
     state = init_states(params, method, jnp.shape(series.dt)[0])
-    out = chosen.compute(params, series, method, state)
+    out = chosen.compute(params, series, method, state,
+                         innovations=innovations and model_of(method).kalman)
     return _named(out.estimate, out.path, params, faults)
 
 
@@ -217,7 +220,7 @@ def same_params(a: Params, b: Params) -> bool:
 def filter_sessions(
     sessions: Sequence[Session], method: str | AbstractModel = "kckf", params: Params | None = None,
     dtype=None, path: str | AbstractPath = "auto", gaps: GapPolicy = GapPolicy(),
-    smooth: bool = False, faults: FaultPolicy | str | None = None,
+    smooth: bool = False, faults: FaultPolicy | str | None = None, innovations: bool = False,
 ) -> list[Estimate]:
     """Run ``method`` over every session; one ``Estimate`` per session, cut back to the
     session's own length, as NumPy arrays, its ``path`` naming the path that ran.
@@ -230,7 +233,8 @@ def filter_sessions(
     trials of the batch (``split_at_gaps``). ``smooth``: the fixed-interval (RTS) smoothed
     estimates instead (``smooth_batch``; the Kalman methods), ``path`` ``"smoothed"``.
     ``faults``: the fault policy (``FaultPolicy`` or its name; default: ``params``' own, else
-    ``isolate``)."""
+    ``isolate``). ``innovations``: as ``filter_batch``'s (not with ``smooth``), each
+    session's restarting where the filter does."""
     method = method_name(method)
     plist = session_params(sessions, params, dtype, faults)
     pieces = [(i, piece) for i, s in enumerate(sessions) for piece in split_at_gaps(s, gaps)]
@@ -251,7 +255,7 @@ def filter_sessions(
             screened_batch, faults = screened(p, batch, method)
             est = dataclasses.replace(smooth_batch(p, screened_batch, method), faults=faults)
         else:
-            est = filter_batch(p, batch, method, path)
+            est = filter_batch(p, batch, method, path, innovations=innovations)
         arrays = jax.tree_util.tree_map(np.asarray, est)
         for b, j in enumerate(members):
             n = pieces[j][1].n_steps

@@ -49,7 +49,8 @@ def test_evaluate_json_layout(session, capsys):
     assert doc["sessions"] == [session]
     for m in ("kckf", "kf", "hall_l"):
         r = doc["methods"][m]
-        kalman = {"nis", "nees", "diagnostics"} if m in ("kckf", "kf") else set()
+        kalman = ({"nis", "nees", "diagnostics", "filter_passes"} if m in ("kckf", "kf")
+                  else set())
         assert set(r) == {"rmse_deg", "mean_rmse_deg", "per_session", "path", "steps_with_truth",
                           "steps_scored", "skipped_updates"} | kalman
         if kalman:
@@ -58,6 +59,8 @@ def test_evaluate_json_layout(session, capsys):
             assert nees["count"] == sum(r["steps_scored"].values())
             assert nees["lo95"] is None and nees["mean"] > 0
         assert r["path"] == "sequential"  # jittered time stamps, dropped readings
+        if kalman:  # the innovations came from the filter's own pass (issue 48, item 3)
+            assert r["filter_passes"] == 1
         assert r["steps_scored"] == r["steps_with_truth"] and r["skipped_updates"] == 0
         assert set(r["steps_scored"]) == set(r["rmse_deg"])
         assert r["mean_rmse_deg"] == pytest.approx(np.mean(list(r["rmse_deg"].values())))

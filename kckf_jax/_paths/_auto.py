@@ -164,9 +164,10 @@ class Auto(AbstractPath):
                                                                    state)
 
     def compute(self, params: Params, series: SensorSeries, method: str,
-                state: FilterState) -> PathRun:
+                state: FilterState, innovations: bool = False) -> PathRun:
         return self.select(params, series, method, state).path.compute(params, series,
-                                                                       method, state)
+                                                                       method, state,
+                                                                       innovations)
 
 
 def _dtype(params: Params, state: FilterState | None):

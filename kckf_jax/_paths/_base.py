@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import abc
 import functools
-from typing import NamedTuple
+from typing import ClassVar, NamedTuple
 
 import equinox as eqx
 import jax
@@ -118,14 +118,27 @@ class AbstractPath(eqx.Module):
                              "fastest that applies) or 'sequential'")
         return PathChoice(self, {})
 
+    #: Whether ``run`` can give the fused Hall innovations from its own pass (``compute``'s
+    #: ``innovations``; ``Estimate.innovations``).
+    innovations_in_pass: ClassVar[bool] = False
+
     def compute(self, params: Params, series: SensorSeries, method: str,
-                state: FilterState) -> PathRun:
+                state: FilterState, innovations: bool = False) -> PathRun:
         """``run`` from the host, compiled once per shapes (``run_filter`` and
         ``filter_batch`` call this and nothing else). A path that checks its result on the
         host overrides it (``Segments``: repair passes, each a program of its own, then the
-        sequential path)."""
-        final, est = _compiled_run(self, params, series, method, state)
+        sequential path). ``innovations``: the estimate also carries the innovations where the
+        path computes them in its pass (``innovations_in_pass``; else it carries none)."""
+        if innovations and self.innovations_in_pass:
+            final, est = _compiled_run_innovations(self, params, series, method, state)
+        else:
+            final, est = _compiled_run(self, params, series, method, state)
         return PathRun(final, est, self)
+
+    def run_innovations(self, params: Params, series: SensorSeries, method: str,
+                        state: FilterState) -> tuple[FilterState, Estimate]:
+        """``run``, its estimate carrying the innovations (``innovations_in_pass``)."""
+        raise NotImplementedError(f"{self.name}: no innovations in its pass")
 
     def batch_layout(self, n_trials: int, method: str = "kckf") -> str:
         """How the likelihood's innovations and the smoother lay out a batch of ``n_trials``
@@ -166,6 +179,11 @@ class AbstractPath(eqx.Module):
 @eqx.filter_jit
 def _compiled_run(path: AbstractPath, params, series, method, state):
     return path.run(params, series, method, state)
+
+
+@eqx.filter_jit
+def _compiled_run_innovations(path: AbstractPath, params, series, method, state):
+    return path.run_innovations(params, series, method, state)
 
 
 def is_traced(*trees) -> bool:

@@ -133,11 +133,13 @@ class Segments(AbstractPath):
                             lambda: Sequential().run(params, series, method, state))
 
     def compute(self, params: Params, series: SensorSeries, method: str,
-                state: FilterState) -> PathRun:
+                state: FilterState, innovations: bool = False) -> PathRun:
         """From the host: the first pass, then repair passes while the check fails, each pass a
         program of its own (a recording whose check passes compiles no repair; a failed one
         compiles one and runs it up to ``repairs`` times), then, where they fail too, the
-        sequential path (``PathRun.path`` says which ran). Under a caller's trace: ``run``."""
+        sequential path (``PathRun.path`` says which ran). Under a caller's trace: ``run``.
+        No innovations in its pass (``innovations`` is taken and left: the estimate carries
+        none), except where it falls back on the sequential path."""
         if is_traced(params, series, state):
             return super().compute(params, series, method, state)
         last = None
@@ -145,7 +147,7 @@ class Segments(AbstractPath):
             final, est, last = _one_pass(self, params, series, method, state, last)
             if bool(last.ok):
                 return PathRun(final, est, self)
-        return Sequential().compute(params, series, method, state)
+        return Sequential().compute(params, series, method, state, innovations)
 
     def run_checked(self, params: Params, series: SensorSeries, method: str,
                     state: FilterState) -> tuple[FilterState, Estimate, Bool[Array, ""]]:

@@ -40,3 +40,10 @@ class Sequential(AbstractPath):
             ) -> tuple[FilterState, Estimate]:
         return jax.vmap(lambda s, x: scan_filter(params, s, method, x, self.remat_chunk))(
             series, state)
+
+    innovations_in_pass: ClassVar[bool] = True
+
+    def run_innovations(self, params: Params, series: SensorSeries, method: str,
+                        state: FilterState) -> tuple[FilterState, Estimate]:
+        return jax.vmap(lambda s, x: scan_filter(params, s, method, x, self.remat_chunk,
+                                                 innovations=True))(series, state)

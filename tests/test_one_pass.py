@@ -1,0 +1,41 @@
+"""The filter's pass gives the innovations too (issue 48, item 3): ``filter_sessions(...,
+innovations=True)`` carries the same fused Hall innovations as the second pass it replaces
+(``session_innovations``), across a gap the filter restarts at, and ``kckf evaluate``
+filters each recording once where the path allows."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+import kckf_jax as kk
+from kckf_jax._diagnostics import session_innovations
+
+
+@pytest.mark.parametrize("method", ["kckf", "kf", "kckf3d"])
+def test_the_pass_innovations_are_the_second_pass(method):
+    s = kk.simulate("x,y,x,y", "cyclic", 3, 12.0, drop_prob=0.01)
+    t = s.t.copy()
+    t[500:] += 2.0  # a 2 s gap in the sensor rows: the filter restarts after it
+    s = dataclasses.replace(s, t=t)
+    gaps = kk.GapPolicy(on_gap="restart")
+    plain = kk.filter_sessions([s], method, gaps=gaps, dtype=np.float64)[0]
+    est = kk.filter_sessions([s], method, gaps=gaps, dtype=np.float64, innovations=True)[0]
+    assert est.path == plain.path == "sequential"
+    # The same steps in a program that also returns the innovations: the same estimates (to
+    # the bit for the linear filters; kckf3d's to float64 rounding, its program fused otherwise).
+    np.testing.assert_allclose(est.angles, plain.angles, rtol=0, atol=1e-12)
+    want = session_innovations([s], method, kk.Params.paper_defaults(s.robot, s.hall_models,
+                                                                     dtype=np.float64), gaps)[0]
+    for got, ref in zip(est.innovations, want):
+        np.testing.assert_allclose(np.asarray(got, np.float64), ref, rtol=1e-12, atol=1e-12)
+    assert plain.innovations is None
+
+
+def test_a_baseline_or_a_path_without_them_carries_none():
+    s = kk.simulate("x,y", "cyclic", 1, 4.0)
+    assert kk.filter_sessions([s], "hall_l", innovations=True)[0].innovations is None
+    est = kk.filter_sessions([s], "kckf", path="lanes", innovations=True)[0]
+    assert est.path == "lanes" and est.innovations is None
