@@ -1,12 +1,13 @@
 """The filters kckf-jax runs, as model objects: one class per filter and one table of their
 names (``MODELS``), which the command's ``--method`` and the API's ``method`` look up.
 
-Every module asks the model what it needs, never its name: its state before the first row and
-its step (``init_state``, ``step``), whether it is a Kalman filter (a covariance: innovations,
-likelihood, smoother, fit), whether its matrices depend on the state (``state_dependent``: no
-layout precomputes them), whether two gyro channels read one rate under it (``gyro_pairs``:
-the stand-ins and the monitor's bias-step pairs), which angles it estimates (``torso``) and
-why the fixed-point paths do not apply to it (``layout_reason``, ``unobservable``).
+Every module asks the model what it needs, never its name: what kind of filter it is (its
+class: ``_kernel``'s ``init_state`` and ``step`` compute it by that), whether it is a Kalman
+filter (a covariance: innovations, likelihood, smoother, fit), whether its matrices depend on
+the state (``state_dependent``: no layout precomputes them), whether two gyro channels read
+one rate under it (``gyro_pairs``: the stand-ins and the monitor's bias-step pairs), which
+angles it estimates (``torso``) and why the fixed-point paths do not apply to it
+(``layout_reason``, ``unobservable``).
 
 * ``KCKF`` (``"kckf"``): the Kinematically Constrained KF (paper Sec. 3.2): Hall updates plus
   the forward-kinematics constraint ``sum theta = phi`` as a perfect measurement;
