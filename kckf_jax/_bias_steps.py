@@ -104,20 +104,20 @@ def bias_steps(session, est) -> list[dict]:
         k = int(np.argmax(score))
         change = d[k]
         moved = np.flatnonzero(hit[k])
-        step = _explain(t, b, grid[k], tg[k], change, moved, cols, used, robot)
+        step = _explain(t, b, grid[k], tg[k], m0[k], change, moved, cols, used, robot)
         if step is not None:
             found.append(step)
         score[np.abs(tg - tg[k]) < span] = 0.0  # one step per stretch of the windows
     return sorted(found, key=lambda f: f["t_s"])
 
 
-def _explain(t, b, row, t_peak, change, moved, cols, used, robot) -> dict | None:
+def _explain(t, b, row, t_peak, before, change, moved, cols, used, robot) -> dict | None:
     """One step: its onset, the joints it moved and the gyro channels that explain it
-    (``None`` where none does: ``MAX_UNEXPLAINED``)."""
+    (``None`` where none does: ``MAX_UNEXPLAINED``). ``before``: each joint's mean over the
+    window before ``t_peak``."""
     j = moved[np.argmax(np.abs(change[moved]))]
-    before = np.nanmean(b[(t >= t_peak - BEFORE_S) & (t < t_peak), j])
     window = np.flatnonzero((t >= t_peak - BEFORE_S) & (t < t_peak + SETTLE_S + AFTER_S))
-    share = (b[window, j] - before) / change[j]
+    share = (b[window, j] - before[j]) / change[j]
     onset = window[np.flatnonzero(share >= ONSET_SHARE)]
     t_on = float(t[onset[0]] if onset.size else t[row])
     fits = []

@@ -184,9 +184,10 @@ def init_state(params: Params, method: str | AbstractModel = "kckf") -> FilterSt
         P0 = _exact.initial_covariance(exact, params.p0_angle, p0_bias)[None].astype(dtype)
         return FilterState(jnp.zeros(P0.shape[:2], dtype), P0, hold)
     if isinstance(model, Gyro):
-        return baseline_state(params, robot.n_angles, 0.0)
+        return FilterState(jnp.zeros(robot.n_angles, dtype), jnp.zeros((0, 0), dtype), hold)
     if isinstance(model, AbstractHall):
-        return baseline_state(params, robot.n_joint_axes, np.nan)
+        return FilterState(jnp.full(robot.n_joint_axes, jnp.nan, dtype),
+                           jnp.zeros((0, 0), dtype), hold)
     raise _no_kernel(model)
 
 
@@ -194,13 +195,6 @@ def _no_kernel(model) -> TypeError:
     return TypeError(f"{type(model).__name__}: the kernel has no step for this kind of model; "
                      "subclass one of kckf_jax's models (KCKF, KF, ExactKCKF, Gyro, HallL, "
                      "HallR)")
-
-
-def baseline_state(params: Params, n: int, fill: float) -> FilterState:
-    """A baseline's state: ``n`` angles at ``fill``, no covariance, the gyros' hold."""
-    dtype = params.log_q.dtype
-    return FilterState(jnp.full(n, fill, dtype), jnp.zeros((0, 0), dtype),
-                       jnp.zeros(3 * params.robot.n_links, dtype))
 
 
 @eqx.filter_jit  # one program, not a dozen op-by-op ones, when called outside a trace

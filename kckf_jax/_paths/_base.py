@@ -129,10 +129,8 @@ class AbstractPath(eqx.Module):
         host overrides it (``Segments``: repair passes, each a program of its own, then the
         sequential path). ``innovations``: the estimate also carries the innovations where the
         path computes them in its pass (``innovations_in_pass``; else it carries none)."""
-        if innovations and self.innovations_in_pass:
-            final, est = _compiled_run_innovations(self, params, series, method, state)
-        else:
-            final, est = _compiled_run(self, params, series, method, state)
+        final, est = _compiled_run(self, params, series, method, state,
+                                   innovations and self.innovations_in_pass)
         return PathRun(final, est, self)
 
     def run_innovations(self, params: Params, series: SensorSeries, method: str,
@@ -177,13 +175,10 @@ class AbstractPath(eqx.Module):
 
 
 @eqx.filter_jit
-def _compiled_run(path: AbstractPath, params, series, method, state):
+def _compiled_run(path: AbstractPath, params, series, method, state, innovations=False):
+    if innovations:  # a Python bool: static, one program each way
+        return path.run_innovations(params, series, method, state)
     return path.run(params, series, method, state)
-
-
-@eqx.filter_jit
-def _compiled_run_innovations(path: AbstractPath, params, series, method, state):
-    return path.run_innovations(params, series, method, state)
 
 
 def is_traced(*trees) -> bool:
