@@ -76,7 +76,7 @@ from kckf_jax import (  # noqa: E402
     run_filter,
     simulate,
 )
-from kckf_jax._model import full_state, paper_matrices  # noqa: E402 (internals)
+from kckf_jax._models._blocks import full_state, paper_matrices  # noqa: E402 (internals)
 
 enable_cpu_loops()  # XLA's CPU loops as one kernel each, before any computation
 

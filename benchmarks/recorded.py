@@ -54,7 +54,7 @@ from _machine import machine, require_peers  # noqa: E402
 
 import kckf_jax as kk  # noqa: E402
 from kckf_jax import enable_cpu_loops  # noqa: E402
-from kckf_jax._model import full_state, paper_matrices  # noqa: E402 (internals)
+from kckf_jax._models._blocks import full_state, paper_matrices  # noqa: E402 (internals)
 
 enable_cpu_loops()  # XLA's CPU loops as one kernel each, before any computation
 

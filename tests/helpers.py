@@ -8,7 +8,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from kckf_jax import Params, Robot, SensorSeries, SessionError, _health, read_session
+from kckf_jax import Params, Robot, SensorSeries, SessionError, read_session
+from kckf_jax._readings import _health
 
 DEG = np.pi / 180
 

@@ -101,7 +101,7 @@ def test_fit_config_names_the_losses():
 @pytest.mark.long
 def test_rmse_nll_is_the_rmse_plus_the_weighted_likelihood(session):
     """``rmse+nll`` = RMSE (deg) + ``nll_weight`` x NLL (nats per reading), at any weight."""
-    from kckf_jax._fit import make_batch, make_loss
+    from kckf_jax._fitting._fit import make_batch, make_loss
 
     s = read_session(session)
     params = initial_params([s], FitConfig())

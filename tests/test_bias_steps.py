@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 import kckf_jax as kk
-from kckf_jax._bias_steps import MIN_STEP_RAD_S
+from kckf_jax._readings._bias_steps import MIN_STEP_RAD_S
 from kckf_jax.cli import main
 
 

@@ -12,15 +12,15 @@ import re
 import pytest
 
 from kckf_jax import cli
-from kckf_jax._effects import EFFECTS as LEARNABLE
-from kckf_jax._fault_policy import FAULT_POLICIES
-from kckf_jax._fit import LOSSES
-from kckf_jax._gaps import ON_GAP
-from kckf_jax._kernel import KALMAN_METHODS, METHODS
-from kckf_jax._params import ALL_LEAVES, HALL_NOISE_MODELS
-from kckf_jax._sim_faults import FAULT_KINDS
-from kckf_jax._simulate import EFFECTS as SIM_EFFECTS
-from kckf_jax._simulate import KINDS, KINEMATICS
+from kckf_jax._fitting._fit import LOSSES
+from kckf_jax._models._effects import EFFECTS as LEARNABLE
+from kckf_jax._models._fault_policy import FAULT_POLICIES
+from kckf_jax._models._kernel import KALMAN_METHODS, METHODS
+from kckf_jax._models._params import ALL_LEAVES, HALL_NOISE_MODELS
+from kckf_jax._readings._gaps import ON_GAP
+from kckf_jax._sessions._sim_faults import FAULT_KINDS
+from kckf_jax._sessions._simulate import EFFECTS as SIM_EFFECTS
+from kckf_jax._sessions._simulate import KINDS, KINEMATICS
 from kckf_jax.cli import main
 
 #: Each option with a closed set of values and the tuple the code checks it against.
@@ -136,10 +136,10 @@ def _run(capsys, *argv):
 
 def test_quiet_evaluate_before_or_after_the_verb_prints_the_table(session, tmp_path, capsys,
                                                                  monkeypatch):
-    import kckf_jax.plots
+    import kckf_jax.cli.plots
 
     for name in ("plot_session", "plot_diagnostics"):  # the figures are test_cli.py's
-        monkeypatch.setattr(kckf_jax.plots, name, lambda *a, **k: None)
+        monkeypatch.setattr(kckf_jax.cli.plots, name, lambda *a, **k: None)
     code, out, loud = _run(capsys, "evaluate", session, "--plot", str(tmp_path / "a"))
     assert code == 0 and out == "" and "KCKF" in loud and f"figures in {tmp_path / 'a'}" in loud
     code, out_before, before = _run(capsys, "--quiet", "evaluate", session,

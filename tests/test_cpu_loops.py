@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 import kckf_jax as kk
-from kckf_jax import _cpu_loops as cl
+from kckf_jax._paths import _cpu_loops as cl
 
 OPTION = cl.OPTION
 

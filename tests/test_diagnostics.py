@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 import kckf_jax as kk
-from kckf_jax import _diagnostics as D
-from kckf_jax import _stats as S
+from kckf_jax._analysis import _diagnostics as D
+from kckf_jax._readings import _stats as S
 from kckf_jax.cli import main
 
 DEG = np.pi / 180.0

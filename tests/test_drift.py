@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import kckf_jax as kk
-from kckf_jax._drift import MIN_DRIFT_DEG
+from kckf_jax._readings._drift import MIN_DRIFT_DEG
 from kckf_jax.cli import main
 
 

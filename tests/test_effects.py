@@ -16,8 +16,8 @@ import numpy as np
 import pytest
 
 import kckf_jax as kk
-from kckf_jax._effects import EFFECTS, SensorEffects, corrected_readings
-from kckf_jax._fit import make_batch
+from kckf_jax._fitting._fit import make_batch
+from kckf_jax._models._effects import EFFECTS, SensorEffects, corrected_readings
 from kckf_jax.export_loader import ExportedStep
 
 DEG = math.pi / 180.0
@@ -76,7 +76,7 @@ def test_corrections_match_an_independent_reference(session):
 def test_gyro_timing_of_a_recording_is_the_streams():
     """The recording's transform (``timed_gyro``) against the hold written out as a loop: the
     step into row k + 1 integrates (1 - lambda) H_k + lambda g_{k+1}, with drops."""
-    from kckf_jax._effects import timed_gyro
+    from kckf_jax._models._effects import timed_gyro
 
     rng = np.random.default_rng(1)
     g = rng.standard_normal((40, 3))

@@ -25,8 +25,8 @@ from kckf_jax import (
     run_filter,
     simulate,
 )
-from kckf_jax._hall import hall_voltage
-from kckf_jax._rotations import link_rates
+from kckf_jax._models._hall import hall_voltage
+from kckf_jax._models._rotations import link_rates
 
 
 @pytest.mark.parametrize(("seed", "spec", "noise"), [
@@ -74,7 +74,7 @@ def test_model_is_the_papers_to_first_order(spec):
     """The joints' rates (Eq. 2) and the torso angles (Eq. 14) of the exact model differ from
     the paper's by the square of the motion: angles and rates 10x smaller, about 100x
     closer."""
-    from kckf_jax._exact import exact_model, joint_rates_jacobian, torso_angles
+    from kckf_jax._models._exact import exact_model, joint_rates_jacobian, torso_angles
 
     robot = Robot.from_spec(spec)
     model = exact_model(robot)
@@ -115,7 +115,7 @@ def test_one_axis_joints_have_the_papers_rates_at_any_angle():
     """A one-axis joint turns its child about its own axis only, so its rate is its two
     links' gyro difference about that axis (Eq. 2) whatever the angles: the paper's, with
     no dependence on the pose."""
-    from kckf_jax._exact import exact_model, joint_rates_jacobian
+    from kckf_jax._models._exact import exact_model, joint_rates_jacobian
 
     robot = Robot.from_spec("x,y,x,y")
     rng = np.random.default_rng(4)

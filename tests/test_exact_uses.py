@@ -124,7 +124,7 @@ def test_exact_data_has_no_gyro_pairs_for_kckf3d():
     bias steps (it isolated over 500 readings here before issue 45) but names as the model's
     approximation; kckf3d's screening has no pairs to judge."""
     from kckf_jax import filter_sessions
-    from kckf_jax._screen import FAULT_KINDS
+    from kckf_jax._readings._screen import FAULT_KINDS
 
     s = simulate("x,y,x,y", "walking", seed=100, duration_s=30.0, kinematics="exact")
     step = FAULT_KINDS.index("bias_step") + 1

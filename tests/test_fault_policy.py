@@ -16,7 +16,7 @@ from reference import reference_filter
 
 import kckf_jax as kk
 from kckf_jax import FaultPolicy, Params, Robot
-from kckf_jax._screen import SCREEN_KINDS
+from kckf_jax._readings._screen import SCREEN_KINDS
 from kckf_jax.cli import main
 
 BENCH = Robot.from_spec("x,y,x,y")

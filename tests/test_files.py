@@ -12,7 +12,8 @@ import time
 import numpy as np
 import pytest
 
-from kckf_jax import Robot, _atomic, _csvio, read_session, simulate, write_session
+from kckf_jax import Robot, read_session, simulate, write_session
+from kckf_jax._sessions import _atomic, _csvio
 from kckf_jax.cli import main
 
 ROBOT = Robot.from_spec("x,y")

@@ -20,8 +20,8 @@ from kckf_jax import (
     run_filter,
     step,
 )
-from kckf_jax._model import full_state
-from kckf_jax._models import structure
+from kckf_jax._models._blocks import full_state
+from kckf_jax._models._classes import structure
 
 
 @pytest.mark.parametrize("seed", range(6))

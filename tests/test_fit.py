@@ -34,8 +34,8 @@ from kckf_jax import (
     simulate,
     write_session,
 )
-from kckf_jax._fit import initial_params
-from kckf_jax._train import filter_spec
+from kckf_jax._fitting._fit import initial_params
+from kckf_jax._fitting._train import filter_spec
 from kckf_jax.cli import main
 
 ROBOT = Robot.from_spec("x,y")
@@ -239,7 +239,7 @@ SHARDING_SCRIPT = textwrap.dedent("""
     jax.config.update("jax_enable_x64", True)
     import equinox as eqx, jax.numpy as jnp, numpy as np
     from kckf_jax import FitConfig, fit, loss_fn, make_batch, shard_batch, simulate
-    from kckf_jax._fit import initial_params
+    from kckf_jax._fitting._fit import initial_params
     assert jax.device_count() == 4
     sessions = [simulate("x,y", "cyclic", seed=s, duration_s=2.0, device_seed=1,
                          drop_prob=0.02) for s in range(6)]

@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from kckf_jax import Params, Robot, hall_angle, hall_slope, hall_voltage
-from kckf_jax._hall import hall_angle_and_slope, hall_angle_np, hall_exponentials
+from kckf_jax._models._hall import hall_angle_and_slope, hall_angle_np, hall_exponentials
 
 
 def _curves(seed=0):

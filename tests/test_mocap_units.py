@@ -26,7 +26,7 @@ from test_containers import (
 )
 
 from kckf_jax import Session, SimConfig, read_session, simulate, write_session
-from kckf_jax._session import SessionWarning
+from kckf_jax._sessions._session import SessionWarning
 from kckf_jax.cli import main
 
 DEG = 180.0 / math.pi
@@ -182,7 +182,7 @@ def test_degrees_in_an_xdf_stream_without_units(tmp_path):
             "(max 5): give the channels the unit deg") in said
 
 
-@pytest.mark.filterwarnings("default::kckf_jax._session.SessionWarning")
+@pytest.mark.filterwarnings("default::kckf_jax._sessions._session.SessionWarning")
 def test_evaluate_refuses_and_filter_says_it_once(tmp_path, capsys):
     s = small_session()
     folder = storage_folder(tmp_path, bent(s, 4.52), "no")

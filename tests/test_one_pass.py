@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 import kckf_jax as kk
-from kckf_jax._diagnostics import session_innovations
+from kckf_jax._analysis._diagnostics import session_innovations
 
 
 @pytest.mark.parametrize("method", ["kckf", "kf", "kckf3d"])

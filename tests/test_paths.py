@@ -36,7 +36,7 @@ from kckf_jax import (
     simulate,
     smooth_batch,
 )
-from kckf_jax._likelihood import hall_nll
+from kckf_jax._paths._likelihood import hall_nll
 
 DEG = np.pi / 180
 #: Small constants: the head is 256 / 512 rows, chunk groups nest several levels deep, and a

@@ -11,8 +11,8 @@ import pytest
 from matplotlib.colors import to_rgb
 
 import kckf_jax as kk
-from kckf_jax import plots
-from kckf_jax._report import PAPER_TABLE_METHODS, TABLE_LABELS
+from kckf_jax.cli import plots
+from kckf_jax.cli._report import PAPER_TABLE_METHODS, TABLE_LABELS
 
 METHODS = [*PAPER_TABLE_METHODS, "kckf_fit", "kckf_fit_smoothed"]  # the demo's columns
 #: Each method's error on every angle it estimates (deg): the gyro drifts, the rest are off

@@ -1,5 +1,5 @@
-"""The finite rotations of a serial chain (``kckf_jax._rotations``) in JAX: the same values as
-in NumPy, differentiable, and to first order the paper's linear model (Eqs. 2 and 14), the
+"""The finite rotations of a serial chain (``kckf_jax._models._rotations``) in JAX: the same
+values as in NumPy, differentiable, and to first order the paper's linear model (Eqs. 2 and 14), the
 ground a rotation-aware KCKF linearises (issue 35)."""
 
 from __future__ import annotations
@@ -10,7 +10,12 @@ import numpy as np
 import pytest
 
 from kckf_jax import Robot
-from kckf_jax._rotations import chain_rotation, euler_xyz, joint_jacobian, link_rates
+from kckf_jax._models._rotations import (
+    chain_rotation,
+    euler_xyz,
+    joint_jacobian,
+    link_rates,
+)
 
 
 def _split(robot, theta):

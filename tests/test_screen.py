@@ -14,8 +14,8 @@ import pytest
 
 import kckf_jax as kk
 from kckf_jax import Params, Robot, SensorSeries
-from kckf_jax._run import screened
-from kckf_jax._screen import RAILED, SATURATED, UNREACHABLE, fault_codes
+from kckf_jax._paths._run import screened
+from kckf_jax._readings._screen import RAILED, SATURATED, UNREACHABLE, fault_codes
 from kckf_jax.cli import main
 
 ROBOT = Robot.from_spec("x,y,x,y")
@@ -262,8 +262,8 @@ def test_clean_bounds_hold_only_clean_readings(case):
     wrong with, and the intervals are tight (a reading 1e-6 of the range beyond an end is
     judged faulty) for the paper's coefficients, sensors mounted the other way round with
     other coefficients, no curve, and a narrow joint range with a small gyro range."""
-    from kckf_jax._limits import SensorLimits
-    from kckf_jax._screen import clean_bounds
+    from kckf_jax._models._limits import SensorLimits
+    from kckf_jax._readings._screen import clean_bounds
     from kckf_jax._stream._packets import host_screen
 
     s = kk.simulate(ROBOT, "cyclic", seed=1, duration_s=1.0)
@@ -294,7 +294,7 @@ def test_clean_bounds_hold_only_clean_readings(case):
 
 
 def kk_screen(host, gyro, hall_v):
-    from kckf_jax._screen import screen
+    from kckf_jax._readings._screen import screen
 
     with np.errstate(invalid="ignore"):
         return screen(host, gyro, hall_v, np)

@@ -32,7 +32,7 @@ from kckf_jax import (
     run_filter,
     simulate,
 )
-from kckf_jax._fit import Batch, rmse_loss
+from kckf_jax._fitting._fit import Batch, rmse_loss
 
 DEG = np.pi / 180
 SMALL = Segments(lanes=6, warmup_float64=800, warmup_float32=800, min_segments=2)

@@ -13,12 +13,11 @@ from helpers import error_of
 from kckf_jax import (
     Robot,
     Session,
-    _csvio,
-    _session,
     align_mocap,
     read_session,
     write_session,
 )
+from kckf_jax._sessions import _csvio, _session
 
 SPEC = "x,y,x,y"
 

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 import kckf_jax as kk
-from kckf_jax import _setup_check as sc
+from kckf_jax._readings import _setup_check as sc
 
 BENCH = kk.Robot.from_spec("x,y,x,y")
 SPATIAL = kk.Robot.from_spec("xyz,xyz,xyz")

@@ -138,7 +138,7 @@ EXACT_CLEAN = SimConfig(gyro_noise_density_dps_rthz=0.0, gyro_zero_rate_dps=0.0,
 
 
 def _rot(axis, a):
-    """One axis rotation, written out here (independent of kckf_jax._rotations)."""
+    """One axis rotation, written out here (independent of kckf_jax._models._rotations)."""
     c, s = np.cos(a), np.sin(a)
     return {"x": np.array([[1, 0, 0], [0, c, -s], [0, s, c]]),
             "y": np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]]),
@@ -196,7 +196,12 @@ def test_exact_and_linear_twins_share_every_draw_and_meet_at_small_angles():
     """A session and its linear twin differ only in the kinematics: the same joint truth and
     Hall voltages; their gyros and torso truths differ by second-order terms, which vanish
     with the angles (the rotation maps against the paper's sums at 1e-4 rad)."""
-    from kckf_jax._rotations import chain_rotation, euler_xyz, joint_jacobian, joint_rotation
+    from kckf_jax._models._rotations import (
+        chain_rotation,
+        euler_xyz,
+        joint_jacobian,
+        joint_rotation,
+    )
 
     exact = simulate("xyz,xyz,xyz", "walking", seed=5, duration_s=10.0, kinematics="exact")
     linear = simulate("xyz,xyz,xyz", "walking", seed=5, duration_s=10.0)

@@ -26,7 +26,7 @@ from kckf_jax import (
     smooth,
     smooth_batch,
 )
-from kckf_jax._likelihood import chi2_interval, hall_nll
+from kckf_jax._paths._likelihood import chi2_interval, hall_nll
 
 
 @pytest.mark.parametrize("seed", range(4))

@@ -14,7 +14,7 @@ from helpers import series_of as make_series
 from reference import reference_smoother
 
 from kckf_jax import Params, Robot, SensorSeries, pad_series, simulate, smooth, smooth_batch
-from kckf_jax._smooth import _smooth_path
+from kckf_jax._paths._smooth import _smooth_path
 
 
 def _close(a, b, atol):

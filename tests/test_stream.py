@@ -414,8 +414,8 @@ def test_the_one_kernel_step_is_the_plain_step(monkeypatch):
     kernel here (the tests enable XLA's CPU loops, as the command does); and a packet whose
     time step is not a number runs nothing (the state kept, ``ok = 0``)."""
     import kckf_jax as kk
-    from kckf_jax._health import init_health
-    from kckf_jax._kernel import init_state
+    from kckf_jax._models._kernel import init_state
+    from kckf_jax._readings._health import init_health
     from kckf_jax._stream import _filter
 
     s = simulate(ROBOT, "cyclic", seed=2, duration_s=12.0, device_seed=2, drop_prob=0.02)
@@ -457,7 +457,7 @@ def test_the_host_paths_quick_check_is_the_screen():
     """A packet whose readings are all inside ``clean_bounds`` is not screened again on the
     host path; one outside is: either way the record is the full check's (random packets
     around the bounds' ends, a parser given the parameters and one without)."""
-    from kckf_jax._screen import clean_bounds
+    from kckf_jax._readings._screen import clean_bounds
 
     params = Params.paper_defaults(ROBOT, simulate(ROBOT, "cyclic", seed=1,
                                                    duration_s=1.0).hall_models)

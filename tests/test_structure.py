@@ -69,7 +69,7 @@ def test_no_import_circle():
 
 def test_the_kernel_imports_no_path_and_filters_no_simulator():
     modules = _modules()
-    kernel = _imports("kckf_jax._kernel", modules["kckf_jax._kernel"], modules)
+    kernel = _imports("kckf_jax._models._kernel", modules["kckf_jax._models._kernel"], modules)
     assert not any(m.startswith("kckf_jax._paths") for m in kernel), kernel
     for system in ("arm_imu", "markov"):
         name = f"kckf_jax.filters.{system}._filter"
@@ -96,7 +96,7 @@ def test_init_docstring_lists_every_public_name():
 #: What a benchmark may reach below the public API (the state's block layout and the paper's
 #: matrices, to build a peer's model): nothing else, and training and notebooks nothing.
 BENCHMARK_INTERNALS = re.compile(
-    r"from kckf_jax\._model import (full_state|paper_matrices|structure)(, (full_state|"
+    r"from kckf_jax\._models\._blocks import (full_state|paper_matrices|structure)(, (full_state|"
     r"paper_matrices|structure))*\b")
 
 

@@ -17,7 +17,7 @@ from test_containers import T0, mocap_stream, sensor_stream, small_session, xdf_
 from xdf_writer import chunk, write_xdf
 
 from kckf_jax import SessionError, read_session
-from kckf_jax._session import SessionWarning
+from kckf_jax._sessions._session import SessionWarning
 from kckf_jax.cli import main
 
 CHUNK = 40  # sensor samples per Samples chunk
@@ -185,7 +185,7 @@ def test_an_empty_mocap_stream_is_no_mocap(tmp_path):
         "evaluate or to fit on the RMSE (kckf fit --loss nll fits on the Hall readings alone)")
 
 
-@pytest.mark.filterwarnings("default::kckf_jax._session.SessionWarning")
+@pytest.mark.filterwarnings("default::kckf_jax._sessions._session.SessionWarning")
 def test_filter_runs_and_evaluate_refuses_on_an_empty_mocap_stream(tmp_path, capsys):
     folder, ref = empty_mocap_folder(tmp_path / "s")
     out = tmp_path / "est.csv"

@@ -29,7 +29,7 @@ from kckf_jax import (  # noqa: E402
     session_series,
     simulate,
 )
-from kckf_jax.plots import plot_drift  # noqa: E402
+from kckf_jax.cli.plots import plot_drift  # noqa: E402
 
 enable_cpu_loops()  # XLA's CPU loops as one kernel each, before any computation
 

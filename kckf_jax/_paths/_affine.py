@@ -17,8 +17,10 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
-from .._custom_types import BlockCov, BlockMap, HallMap, RateMap
-from .._kernel import (
+from .._models._blocks import Structure
+from .._models._classes import structure
+from .._models._custom_types import BlockCov, BlockMap, HallMap, RateMap
+from .._models._kernel import (
     BlockInputs,
     SensorSeries,
     block_estimate,
@@ -27,9 +29,7 @@ from .._kernel import (
     fused_pairs,
     hall_measurements,
 )
-from .._model import Structure
-from .._models import structure
-from .._params import Params
+from .._models._params import Params
 
 
 class StepMaps(NamedTuple):

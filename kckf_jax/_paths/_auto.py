@@ -9,8 +9,8 @@ import equinox as eqx
 import jax
 import numpy as np
 
-from .._kernel import Estimate, FilterState, SensorSeries
-from .._params import Params
+from .._models._kernel import Estimate, FilterState, SensorSeries
+from .._models._params import Params
 from ._base import AbstractPath, PathChoice, PathRun, SmootherLayout, is_traced, kalman_only
 from ._lanes import Lanes
 from ._parallel import Parallel

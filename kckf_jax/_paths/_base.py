@@ -22,12 +22,12 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
-from .._health import screened_series
-from .._kernel import Estimate, FilterState, SensorSeries
-from .._models import model_of
-from .._params import Params
-from .._robot import Robot
-from .._screen import screen
+from .._models._classes import model_of
+from .._models._kernel import Estimate, FilterState, SensorSeries
+from .._models._params import Params
+from .._models._robot import Robot
+from .._readings._health import screened_series
+from .._readings._screen import screen
 
 #: Two time steps closer than this (s) count as equal: a constant step to the filter.
 STEP_TOL_S = 1e-9

@@ -23,7 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from .._hall import hall_angle
+from .._models._hall import hall_angle
 from ._affine import apply_blocks
 
 

@@ -17,7 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from .._model import Structure
+from .._models._blocks import Structure
 
 
 def _tri(n: int) -> list[tuple[int, int]]:

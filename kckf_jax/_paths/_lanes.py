@@ -25,17 +25,17 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
-from .._chunked_scan import chunked_scan
-from .._kernel import (
+from .._models._blocks import ProcessNoise, Structure, block_gather, q_blocks
+from .._models._chunked_scan import chunked_scan
+from .._models._classes import structure
+from .._models._kernel import (
     Estimate,
     FilterState,
     SensorSeries,
     block_hall,
     plausible,
 )
-from .._model import ProcessNoise, Structure, block_gather, q_blocks
-from .._models import structure
-from .._params import Params
+from .._models._params import Params
 from ._base import AbstractPath, PathCost, SmootherLayout, is_traced, kalman_only
 from ._lane_step import _apply, _Consts, _tri, _tri_index, lane_step, pack_tape
 from ._lanes_adjoint import scan_rows

@@ -29,7 +29,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._model import Structure
+from .._models._blocks import Structure
 from ._lane_step import _apply, _Consts, lane_step_adjoint
 
 

@@ -16,10 +16,10 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
-from .._kalman import cholesky_solve
-from .._kernel import FilterState, SensorSeries, plausible
-from .._model import Structure
-from .._params import Params
+from .._models._blocks import Structure
+from .._models._kalman import cholesky_solve
+from .._models._kernel import FilterState, SensorSeries, plausible
+from .._models._params import Params
 from ._lane_step import _Consts, _tri
 from ._lanes import LaneMoments, LaneState, lane_estimates, lane_inputs, lane_moments_scan
 

@@ -16,9 +16,9 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from .._kernel import Estimate, FilterState, SensorSeries, block_estimate, plausible
-from .._models import structure
-from .._params import Params
+from .._models._classes import structure
+from .._models._kernel import Estimate, FilterState, SensorSeries, block_estimate, plausible
+from .._models._params import Params
 from ._affine import covariance_phase, series_inputs
 from ._base import AbstractPath, kalman_only
 

@@ -38,9 +38,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool
 
-from .._kernel import Estimate, FilterState, SensorSeries, plausible
-from .._models import model_of, structure
-from .._params import Params
+from .._models._classes import model_of, structure
+from .._models._kernel import Estimate, FilterState, SensorSeries, plausible
+from .._models._params import Params
 from ._base import AbstractPath, PathCost, PathRun, is_traced, kalman_only
 from ._lanes import NO_OP_INPUTS, LaneRows, LaneState, lane_estimates, lane_inputs, lane_scan
 from ._sequential import Sequential

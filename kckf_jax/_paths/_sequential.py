@@ -8,8 +8,8 @@ from typing import ClassVar
 import equinox as eqx
 import jax
 
-from .._kernel import Estimate, FilterState, SensorSeries, scan_filter
-from .._params import Params
+from .._models._kernel import Estimate, FilterState, SensorSeries, scan_filter
+from .._models._params import Params
 from ._base import AbstractPath, PathCost
 
 

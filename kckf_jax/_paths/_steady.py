@@ -25,7 +25,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from .._kernel import (
+from .._models._blocks import Structure
+from .._models._classes import model_of, structure
+from .._models._kernel import (
     BlockInputs,
     Estimate,
     FilterState,
@@ -35,9 +37,7 @@ from .._kernel import (
     init_state,
     plausible,
 )
-from .._model import Structure
-from .._models import model_of, structure
-from .._params import Params
+from .._models._params import Params
 from ._affine import (
     StepMaps,
     covariance_phase,

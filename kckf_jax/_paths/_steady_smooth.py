@@ -25,13 +25,13 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
-from .._kernel import FilterState, SensorSeries, block_estimate, init_state, plausible
-from .._model import predicted_moments
-from .._models import structure
-from .._params import Params
-from .._rts import rts_covariance, rts_gain, rts_rows
+from .._models._blocks import predicted_moments
+from .._models._classes import structure
+from .._models._kernel import FilterState, SensorSeries, block_estimate, init_state, plausible
+from .._models._params import Params
 from ._affine import output_map, reading_maps, series_inputs, step_maps
 from ._base import is_traced, regular_step, relative_change
+from ._rts import rts_covariance, rts_gain, rts_rows
 from ._steady import Steady, _head_covariance
 
 #: Rows per chunk of the backward mean (16 measured faster than 8 and 32 on the bench hour).

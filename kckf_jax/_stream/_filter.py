@@ -10,10 +10,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._gaps import GapPolicy
-from .._hall import hall_exponentials
-from .._health import by_policy, health_step, init_health
-from .._kernel import (
+from .._models._classes import AbstractModel, method_name, structure
+from .._models._hall import hall_exponentials
+from .._models._kernel import (
     FilterState,
     SensorSeries,
     estimated,
@@ -21,10 +20,11 @@ from .._kernel import (
     init_state,
     step,
 )
-from .._models import AbstractModel, method_name, structure
-from .._params import Params
+from .._models._params import Params
 from .._paths import STEP_TOL_S, Steady, converged_map, readings_present, relative_change
-from .._screen import FAULT_KINDS, screen
+from .._readings._gaps import GapPolicy
+from .._readings._health import by_policy, health_step, init_health
+from .._readings._screen import FAULT_KINDS, screen
 from ._packets import USED, Packet, PacketParser
 
 #: Compiled once per parameter layout (``StreamingFilter.warmup`` compiles it up front).

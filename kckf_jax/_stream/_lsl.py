@@ -16,8 +16,8 @@ import time
 
 import numpy as np
 
-from .._robot import Robot
-from .._xdf import _UNITS
+from .._models._robot import Robot
+from .._sessions._xdf import _UNITS
 from ._packets import Packet
 from ._source import Source
 

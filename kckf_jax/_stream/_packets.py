@@ -14,9 +14,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .._limits import SensorLimits
-from .._robot import Robot
-from .._screen import FAULT_KINDS, clean_bounds, screen
+from .._models._limits import SensorLimits
+from .._models._robot import Robot
+from .._readings._screen import FAULT_KINDS, clean_bounds, screen
 
 #: Every ``status`` an output line can carry (``kckf stream`` and ``export_loader.py`` alike).
 #: Used packets: ``ok`` (absent readings, a missing key, ``null`` or NaN, are missing

@@ -1,5 +1,5 @@
 """The other papers' systems, one package each, on the package's step/scan/vmap pattern and
-its Kalman helpers (``kckf_jax._kalman``), fitted by its one training loop
+its Kalman helpers (``kckf_jax._models._kalman``), fitted by its one training loop
 (docs/other_filters.md):
 
 * ``arm_imu``: the arm exoskeleton + IMU fusion filter of Chen, Yang and Hofschulte, its

@@ -85,8 +85,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
-from ..._batching import pad_trials
-from ..._kalman import coordinate_update, symmetrise
+from ..._models._kalman import coordinate_update, symmetrise
+from ..._readings._batching import pad_trials
 
 DEG = np.pi / 180.0
 GRAVITY_MPS2 = 9.81
@@ -570,5 +570,5 @@ def arm_imu_series(
 
 def pad_arm_imu(series: list[ArmImuSeries], length: int | None = None) -> ArmImuSeries:
     """Stack trials of uneven length into one batch; padding rows are no-op steps
-    (``kckf_jax._kernel.pad_trials``)."""
+    (``kckf_jax._models._kernel.pad_trials``)."""
     return pad_trials(series, length, "pad_arm_imu")

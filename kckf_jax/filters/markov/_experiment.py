@@ -12,7 +12,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..._train import AbstractLoss, TrainConfig, train
+from ..._fitting._train import AbstractLoss, TrainConfig, train
 from ._filter import (
     DEG,
     METHODS,

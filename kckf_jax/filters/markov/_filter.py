@@ -71,7 +71,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from ..._kalman import row_update, symmetrise
+from ..._models._kalman import row_update, symmetrise
 
 DEG = math.pi / 180.0
 G_M_S2 = 9.80665

@@ -1,0 +1,1 @@
+"""Analysis: error figures, diagnostics, their statistics, observability."""

@@ -1,0 +1,1 @@
+"""Fitting: the losses and the one optax training loop."""

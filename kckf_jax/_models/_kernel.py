@@ -1,0 +1,579 @@
+"""The filter's kernel: its types, the block operations, ``step`` and ``scan_filter``.
+
+``step(params, state, inputs, method) -> (state, estimate)`` is the only implementation of
+each method (a model of ``_models`` or its name); ``scan_filter`` strings it together with
+``lax.scan`` over a recording. Every way of computing the filter (``_paths``: sequential,
+steady, parallel, ...), the streaming filter and the exported step are built on what is
+here; this module imports none of them.
+
+The methods are models (``_models``: ``KCKF``, ``KF``, ``Gyro``, ``HallL``, ``HallR``,
+``ExactKCKF``; ``MODELS`` names them): ``init_state`` and ``step`` compute each by its class,
+``kalman_step_moments`` the Kalman ones from the linear block arithmetic here or the exact
+model's (``_exact.py``).
+
+Conventions shared with the NumPy reference in ``tests/``:
+
+* ``inputs.dt[k] = t[k] - t[k-1]`` (``dt[0] = 0``: no prediction before the first row);
+  timestamps are differenced in float64 before they reach here;
+* the gyro rates of row ``k - 1`` drive the prediction from ``k - 1`` to ``k`` (Eq. 9 uses
+  ``omega(k)`` to reach ``k + 1``); a missing gyro reading holds that channel's last value;
+* a missing Hall reading (NaN) removes only its own measurement row at that step;
+* a reading that cannot be a measurement (outside its physical range ``Params.limits``, a
+  railed Hall sensor, an angle no joint reaches, a saturated gyro: ``_screen``; a Hall sensor
+  isolated over time, a clipped gyro: ``_health``) is treated as missing, and a gyro reading
+  missing for a while is taken from a gyro measuring the same rate (``Robot.gyro_stand_ins``)
+  where one reads (``plausible``);
+* a Kalman step whose new state is not finite is skipped: the state is kept as it was, and
+  ``Estimate.skipped`` says so (the streaming filter reports it as ``rejected``);
+* a padded step (``dt = 0``, every reading NaN) leaves the state unchanged.
+
+Numerics (docs/numerics.md): measurements are processed one scalar at a time (``R`` is
+diagonal, so this equals the paper's joint update), each with the Joseph form
+(``_kalman.py``); the constraint rows are conditioned the same way with zero noise in the
+coordinates of ``_blocks.structure``. There is no matrix inverse or LAPACK call in a step.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
+
+from .._readings._health import screened_series
+from .._readings._screen import screen
+from . import _exact
+from ._blocks import (
+    ProcessNoise,
+    block_gather,
+    initial_covariance,
+    predicted_moments,
+    q_blocks,
+    static_take,
+)
+from ._chunked_scan import chunked_scan
+from ._classes import (
+    KALMAN_METHODS,
+    METHODS,
+    AbstractHall,
+    AbstractLinearKalman,
+    AbstractModel,
+    ExactKCKF,
+    Gyro,
+    model_of,
+)
+from ._custom_types import BlockCov, BlockHall, BlockRates, BlockState, BlockValid
+from ._effects import corrected_readings, timed_hold
+from ._hall import hall_angle, hall_slope
+from ._kalman import coordinate_update, fused_pairs, symmetrise
+from ._params import Params
+
+__all__ = ["KALMAN_METHODS", "METHODS"]  # the table's (``_models``), re-exported
+
+
+class SensorSeries(eqx.Module):
+    """Filter inputs: one step (no leading axis), one trial (``T``) or a batch (``B T``).
+
+    * ``dt``: seconds since the previous row (0 for the first and for padding);
+    * ``gyro``: (``G = 3 (n + 1)``) rad/s, flattened ``gyro1_x, gyro1_y, ..., gyro{n+1}_z``;
+    * ``hall_v``: (``M``) V, in ``Robot.hall_names`` order. NaN marks a missing reading.
+    """
+
+    dt: Float[ArrayLike, "*T"]
+    gyro: Float[ArrayLike, "*T G"]
+    hall_v: Float[ArrayLike, "*T M"]
+    #: Whether the readings are already as the filter uses them (``plausible``'s result):
+    #: then ``plausible`` leaves them as they are, so each path screens its input once.
+    screened: bool = eqx.field(static=True, default=False)
+    #: Whether the learned sensor effects (``Params.effects``) are already taken out of the
+    #: readings (``_effects.corrected_readings``): ``plausible`` does it once per series.
+    corrected: bool = eqx.field(static=True, default=False)
+
+
+class FilterState(eqx.Module):
+    """What a filter carries from one step to the next.
+
+    For the Kalman filters ``z`` (``Nb x Nz``) and ``P`` (``Nb x Nz x Nz``) are the estimate and
+    covariance of every axis block in the filter's coordinates (``_model.Structure``; use
+    ``full_state`` for the paper's ``x`` and its covariance). For the baselines ``z`` holds the
+    angles and ``P`` is empty. ``gyro_hold`` is the last valid rate of every gyro channel.
+    The paths carry a batch of states, one per trial (a leading axis on every leaf).
+    """
+
+    z: Float[Array, "*b Nz"]
+    P: Float[Array, "*b Np Np"]
+    gyro_hold: Float[Array, "*B G"]
+
+
+class Estimate(eqx.Module):
+    """Per-step output, in ``Robot.angle_names`` order (joint axes, then torso axes).
+
+    ``angles`` (rad), ``angle_std`` (rad) and ``bias`` (rad/s, joint and torso biases); NaN
+    where the method does not estimate a quantity. ``skipped``: the steps whose update was not
+    finite and left the state as it was (``None`` where nothing computed it). ``path``
+    (static) names the computation that produced it (``"sequential"``, ``"steady"``, ...;
+    ``None`` for a bare ``step`` or ``scan_filter``): every path gives the same estimates, to
+    rounding. ``names`` (static, set by ``run_filter`` and friends) are the angles' names:
+    ``columns()`` gives the estimates keyed by them. ``faults`` (set by ``run_filter``,
+    ``filter_batch`` and ``filter_sessions``): per row and reading (``Robot.gyro_names`` then
+    ``Robot.hall_names``) why the filter did not use it, a code of ``_screen.FAULT_KINDS``
+    (0: used or missing); ``kk.fault_stretches`` names them by column and time.
+    ``innovations``: the fused Hall innovations ``(nu, var, valid)`` per row (``*T Nb m``)
+    where the caller asked for them (``filter_batch(..., innovations=True)``) and the path
+    computed them in the same pass (``AbstractPath.innovations_in_pass``); else ``None``.
+    """
+
+    angles: Float[ArrayLike, "*T K"]
+    angle_std: Float[ArrayLike, "*T K"]
+    bias: Float[ArrayLike, "*T K"]
+    skipped: Bool[ArrayLike, "*T"] | None = None
+    faults: Int[ArrayLike, "*T C"] | None = None
+    innovations: tuple | None = None
+    path: str | None = eqx.field(static=True, default=None)
+    names: tuple[str, ...] | None = eqx.field(static=True, default=None)
+
+    def columns(self, what: str = "angles") -> dict[str, np.ndarray]:
+        """The estimated ``what`` (``"angles"``, ``"angle_std"`` or ``"bias"``) as NumPy columns
+        keyed by angle name (``Robot.angle_names``); an angle the method does not estimate (NaN
+        throughout) is left out. Needs ``names`` (set by ``run_filter``, ``filter_batch`` and
+        ``filter_sessions``).
+
+        Example:
+            >>> robot = Robot.from_spec("x")
+            >>> series = SensorSeries(jnp.full(3, 0.01), jnp.zeros((3, 6)), jnp.ones((3, 2)))
+            >>> sorted(run_filter(Params.paper_defaults(robot), series)[1].columns())
+            ['phi_x', 'theta1_x']
+        """
+        if self.names is None:
+            raise ValueError("Estimate.columns: this estimate has no names; use one from "
+                             "run_filter, filter_batch or filter_sessions")
+        values = np.asarray(getattr(self, what))
+        return {n: values[..., k] for k, n in enumerate(self.names)
+                if np.isfinite(values[..., k]).any()}
+
+
+def check_method(method: str | AbstractModel) -> None:
+    """A ``ValueError`` naming the known methods unless ``method`` is a model or the name of
+    one (``_models.MODELS``)."""
+    model_of(method)
+
+
+def estimated(robot, method: str | AbstractModel) -> np.ndarray:
+    """Which of ``robot.angle_names`` ``method`` estimates (``K`` bools): every angle, except
+    the torso angles for the single-sensor Hall baselines (``AbstractModel.torso``)."""
+    return model_of(method).estimated(robot)
+
+
+def init_state(params: Params, method: str | AbstractModel = "kckf") -> FilterState:
+    """The state before the first row: zero angles and biases, covariance from ``params``
+    (by the model's kind: ``_models``)."""
+    model = model_of(method)
+    robot = params.robot
+    dtype = params.log_q.dtype
+    hold = jnp.zeros(3 * robot.n_links, dtype)
+    if isinstance(model, AbstractLinearKalman):
+        P0 = initial_covariance(model.structure(robot), params)
+        return FilterState(jnp.zeros(P0.shape[:2], dtype), P0, hold)
+    if isinstance(model, ExactKCKF):
+        exact = _exact.exact_model(robot)
+        p0_bias = _exact.gyro_bias_noise(exact, params.q, params.bias_rw, params.p0_bias)[2]
+        P0 = _exact.initial_covariance(exact, params.p0_angle, p0_bias)[None].astype(dtype)
+        return FilterState(jnp.zeros(P0.shape[:2], dtype), P0, hold)
+    if isinstance(model, Gyro):
+        return FilterState(jnp.zeros(robot.n_angles, dtype), jnp.zeros((0, 0), dtype), hold)
+    if isinstance(model, AbstractHall):
+        return FilterState(jnp.full(robot.n_joint_axes, jnp.nan, dtype),
+                           jnp.zeros((0, 0), dtype), hold)
+    raise _no_kernel(model)
+
+
+def _no_kernel(model) -> TypeError:
+    return TypeError(f"{type(model).__name__}: the kernel has no step for this kind of model; "
+                     "subclass one of kckf_jax's models (KCKF, KF, ExactKCKF, Gyro, HallL, "
+                     "HallR)")
+
+
+@eqx.filter_jit  # one program, not a dozen op-by-op ones, when called outside a trace
+def init_states(params: Params, method: str, n: int) -> FilterState:
+    """``init_state`` for each of ``n`` trials: a leading axis of ``n`` on every leaf (the
+    batch of states the paths carry)."""
+    return jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (n,) + x.shape),
+                                  init_state(params, method))
+
+
+def hall_measurements(
+    params: Params, hall_v: Float[Array, " M"]
+) -> tuple[Float[Array, " M"], Float[Array, " M"], Bool[Array, " M"]]:
+    """Hall angles (rad, Eq. 1), their noise variances (rad^2) and validity for one row.
+
+    Missing readings are replaced by 0 V *before* the model so that neither the value nor
+    its gradient is NaN.
+    """
+    valid = jnp.isfinite(hall_v)
+    v = jnp.where(valid, hall_v, 0.0)
+    coeffs = params.hall_coeffs
+    angle = hall_angle(v, *coeffs)
+    if params.hall_noise == "voltage":
+        r = (hall_slope(v, *coeffs) * params.sigma_hall_v) ** 2 + params.sigma_hall**2
+    else:
+        r = params.sigma_hall**2 * jnp.ones_like(v)
+    return angle, r, valid
+
+
+class BlockInputs(NamedTuple):
+    """One row's inputs laid out by axis block (``block_inputs``; any leading axes where
+    every row is laid out at once).
+
+    Attributes:
+        dt: the time step (s).
+        rates: the rates of the previous row (``Nb x m1``, Eqs. 2, 9, 10).
+        noise: the process noise (Eq. 13), each term ``Nb x m1``.
+        hb: each block joint's fused Hall reading (rad, ``Nb x m``; Eqs. 1, 5, 8, 20).
+        rb: its variance.
+        vb: whether it exists.
+    """
+
+    dt: Float[Array, ""]
+    rates: BlockRates
+    noise: ProcessNoise
+    hb: BlockHall
+    rb: BlockHall
+    vb: BlockValid
+
+
+def block_inputs(params: Params, st, gyro_hold: Float[Array, " G"], inputs: SensorSeries,
+                 in_loop: bool = True) -> BlockInputs:
+    """One row's inputs laid out by axis block (``_model.Structure``). ``in_loop``: whether
+    the row is taken inside a loop (``_blocks.static_take``)."""
+    robot = params.robot
+    dtype = gyro_hold.dtype
+    dt = inputs.dt.astype(dtype)
+    plus, minus = robot.rate_pairs
+
+    def take(x, idx):
+        return static_take(x, idx, in_loop=in_loop)
+
+    rates = block_gather(st, take(gyro_hold, plus) - take(gyro_hold, minus), in_loop)
+    noise = ProcessNoise(*(block_gather(st, x, in_loop)
+                           for x in q_blocks(params.q, params.angle_rw, params.bias_rw, dt)))
+    return BlockInputs(dt, rates, noise, *block_hall(params, st, inputs.hall_v.astype(dtype),
+                                                     in_loop))
+
+
+def block_hall(params: Params, st, hall_v: Float[Array, " M"], in_loop: bool = True
+               ) -> tuple[BlockHall, BlockHall, BlockValid]:
+    """One row's Hall voltages as each block joint's fused reading (rad), its variance and
+    whether it exists (``Nb x m``; a padding joint: 0, 1 and ``False``; Eqs. 1, 5, 8, 20).
+    ``in_loop``: as ``block_inputs``."""
+    angle, r, valid = hall_measurements(params, hall_v)
+    h, rh, ok = fused_pairs(angle, r, valid)
+    ji = st.joint_index
+    pad = ji < 0
+    at = np.maximum(ji, 0)
+
+    def take(x):
+        return static_take(x, at, in_loop=in_loop)
+
+    return (jnp.where(pad, 0.0, take(h)), jnp.where(pad, 1.0, take(rh)),
+            jnp.where(pad, False, take(ok)))
+
+
+def block_step(
+    st,
+    z: Float[Array, " Nz"],
+    P: Float[Array, "Nz Nz"],
+    rates: Float[Array, " m1"],
+    alpha: Float[Array, " m1"],
+    beta: Float[Array, " m1"],
+    gamma: Float[Array, " m1"],
+    hb: Float[Array, " m"],
+    rb: Float[Array, " m"],
+    vb: Bool[Array, " m"],
+    dt: Float[Array, ""],
+) -> tuple[Float[Array, " Nz"], Float[Array, "Nz Nz"], Float[Array, " Ny"], Float[Array, "Ny Ny"],
+           Float[Array, " m"], Float[Array, " m"]]:
+    """``block_update`` with what happened on the way: returns ``(z, P, y, S, nu, s)``, the new
+    state, the predicted moments of ``y = [z, e]`` (before any update: the smoother's
+    ``x_{k|k-1}``) and each joint's fused Hall innovation ``nu`` and its variance ``s`` (the
+    likelihood's and NIS's terms; where ``vb`` is false they are not used)."""
+    y_pred, S_pred = predicted_moments(st, z, P, rates, (alpha, beta, gamma), dt)
+    y, S = y_pred, S_pred
+    for i in range(st.n_e):
+        e = st.n_z + i
+        y, S = coordinate_update(y, S, e, -y[e], jnp.zeros((), z.dtype), dt > 0)
+    z, P = y[: st.n_z], S[: st.n_z, : st.n_z]
+    nus, ss = [], []
+    for i in range(st.m):
+        nus.append(hb[i] - z[i])
+        ss.append(P[i, i] + rb[i])
+        z, P = coordinate_update(z, P, i, nus[-1], rb[i], vb[i])
+    zero = jnp.zeros((0,), z.dtype)
+    nu = jnp.stack(nus) if nus else zero
+    s = jnp.stack(ss) if ss else zero
+    return z, symmetrise(P), y_pred, S_pred, nu, s
+
+
+def block_update(
+    st,
+    z: Float[Array, " Nz"],
+    P: Float[Array, "Nz Nz"],
+    rates: Float[Array, " m1"],
+    alpha: Float[Array, " m1"],
+    beta: Float[Array, " m1"],
+    gamma: Float[Array, " m1"],
+    hb: Float[Array, " m"],
+    rb: Float[Array, " m"],
+    vb: Bool[Array, " m"],
+    dt: Float[Array, ""],
+) -> tuple[Float[Array, " Nz"], Float[Array, "Nz Nz"]]:
+    """One axis block's predict and update (the filter's arithmetic, for one block).
+
+    Predict ``y = [z, e]`` (Eqs. 3, 9-13); for the KCKF condition on the perfect measurement
+    ``e = sum theta - phi = 0`` (Eqs. 15-19); then one scalar Joseph update per joint with its
+    fused Hall reading (Eqs. 4-5, 8, 20). For fixed ``P``, ``dt`` and masks the new ``z`` is
+    linear in ``(z, rates, hb)``: the steady and parallel paths (``_paths``) use exactly that.
+    """
+    return block_step(st, z, P, rates, alpha, beta, gamma, hb, rb, vb, dt)[:2]
+
+
+def block_estimate(st, z: BlockState, P: BlockCov, in_loop: bool = True) -> Estimate:
+    """Angles, their standard deviations and biases from the block states, in angle order
+    (``in_loop``: as ``block_inputs``)."""
+    T = jnp.asarray(st.T, z.dtype)
+    m1 = st.m + 1
+    xb = jnp.sum(T[None] * z[:, None, :], axis=2)  # (P, 2m + 2): the paper's x per block
+    Ta = T[:m1]
+    TaP = jnp.sum(Ta[None, :, :, None] * P[:, None, :, :], axis=2)  # (P, m1, Nz)
+    var = jnp.sum(TaP * Ta[None], axis=2)
+    bo, so = np.asarray(st.block_of), np.asarray(st.slot_of)
+    ncol = xb.shape[1]
+
+    def take(x, idx):
+        return static_take(x, idx, in_loop=in_loop)
+
+    angle = take(xb.reshape(-1), bo * ncol + so)
+    bias = take(xb.reshape(-1), bo * ncol + m1 + so)
+    std = jnp.sqrt(jnp.maximum(take(var.reshape(-1), bo * var.shape[1] + so), 0.0))
+    return Estimate(angle, std, bias)
+
+
+class StepMoments(eqx.Module):
+    """What a Kalman step computed on the way (``kalman_step_moments``), per block: the
+    predicted moments of ``y = [z, e]`` (``y``, ``S``), each joint's fused Hall innovation
+    and its variance (``nu``, ``s``) and whether that reading was used (``valid``), the time
+    step and whether the update was skipped. The smoother and the likelihood read them."""
+
+    y: Float[Array, "*T Nb Ny"]
+    S: Float[Array, "*T Nb Ny Ny"]
+    nu: Float[Array, "*T Nb m"]
+    s: Float[Array, "*T Nb m"]
+    valid: Bool[Array, "*T Nb m"]
+    dt: Float[Array, "*T"]
+    skipped: Bool[Array, "*T"]
+    #: The Jacobian of ``y`` in the previous row's ``z`` (``kckf3d``, whose model depends on
+    #: the state); ``None`` for the linear methods, whose map is ``Structure``'s.
+    F: Float[Array, "*T Nb Ny Nz"] | None = None
+
+
+def kalman_step_moments(params: Params, state: FilterState, inputs: SensorSeries,
+                        method: str | AbstractModel) -> tuple[FilterState, Estimate,
+                                                              StepMoments]:
+    """``step`` of a Kalman model (``_models.AbstractKalman``: its ``moments`` and
+    ``estimate``), and its ``StepMoments``."""
+    model = model_of(method)
+    kept = state  # what a skipped update keeps
+    state, inputs = _row_inputs(params, state, inputs, model)
+    F = None
+    if isinstance(model, ExactKCKF):
+        z, P, y, S, F, nu, s, vb, dt = exact_parts(params, state, inputs)
+    elif isinstance(model, AbstractLinearKalman):
+        st = model.structure(params.robot)
+        dt, rates, noise, hb, rb, vb = block_inputs(params, st, state.gyro_hold, inputs)
+        z, P, y, S, nu, s = jax.vmap(lambda *a: block_step(st, *a, dt))(
+            state.z, state.P, rates, *noise, hb, rb, vb)
+    else:
+        raise _no_kernel(model)
+    gyro = inputs.gyro.astype(state.z.dtype)
+    hold = jnp.where(jnp.isfinite(gyro), gyro, state.gyro_hold)
+    # An update that is not finite (a time step so long that the prediction overflows) is
+    # skipped: the whole state stays as it was, so nothing can poison it.
+    ok = jnp.isfinite(z).all() & jnp.isfinite(P).all()
+    new = jax.tree_util.tree_map(lambda a, b: jnp.where(ok, a, b), FilterState(z, P, hold),
+                                 kept)
+    est = model_estimate(params.robot, model, new.z, new.P)
+    return new, dataclasses.replace(est, skipped=~ok), StepMoments(y, S, nu, s, vb & ok, dt,
+                                                                   ~ok, F)
+
+
+def model_estimate(robot, method: str | AbstractModel, z: BlockState, P: BlockCov
+                   ) -> Estimate:
+    """A Kalman model's ``Estimate`` of its block state ``z`` and covariance ``P``."""
+    model = model_of(method)
+    if isinstance(model, ExactKCKF):
+        return exact_block_estimate(robot, z, P)
+    return block_estimate(model.structure(robot), z, P)
+
+
+def exact_parts(params: Params, state: FilterState, inputs: SensorSeries):
+    """One ``kckf3d`` step (``_exact.exact_step``) laid out as one block (``Nb = 1``)."""
+    dtype = state.z.dtype
+    model = _exact.exact_model(params.robot)
+    dt = inputs.dt.astype(dtype)
+    noise = ProcessNoise(*q_blocks(params.q, params.angle_rw, params.bias_rw, dt))
+    bias_q, bias_rw2, _ = _exact.gyro_bias_noise(model, params.q, params.bias_rw, params.p0_bias)
+    h, rh, vh = fused_pairs(*hall_measurements(params, inputs.hall_v.astype(dtype)))
+    z, P, y, S, F, nu, s = _exact.exact_step(model, state.z[0], state.P[0], state.gyro_hold,
+                                             noise, bias_q, bias_rw2, h, rh, vh, dt)
+    return z[None], P[None], y[None], S[None], F[None], nu[None], s[None], vh[None], dt
+
+
+def exact_block_estimate(robot, z: BlockState, P: BlockCov) -> Estimate:
+    """``kckf3d``'s estimate from its one-block state (``_exact.exact_estimate``)."""
+    return Estimate(*_exact.exact_estimate(_exact.exact_model(robot), z[0], P[0]))
+
+
+def _row_inputs(params: Params, state: FilterState, inputs: SensorSeries,
+                method: str | AbstractModel):
+    """One row as the step uses it (``plausible``), and the state whose hold the prediction
+    integrates: a row that comes alone (a stream's packet, not a row of a corrected recording)
+    has its learned gyro timing applied here, with the hold (``_effects.timed_hold``); the
+    hold the step keeps is this row's reading either way."""
+    alone = not inputs.corrected
+    inputs = plausible(params, inputs, method)
+    if alone and params.effects is not None:
+        gyro = inputs.gyro.astype(state.gyro_hold.dtype)
+        state = dataclasses.replace(state, gyro_hold=timed_hold(params.effects,
+                                                                state.gyro_hold, gyro))
+        inputs = dataclasses.replace(inputs, gyro=gyro)
+    return state, inputs
+
+
+def gyro_step(params: Params, state: FilterState, inputs: SensorSeries,
+              model: AbstractModel):
+    """``Gyro``'s step: the joint and torso rates of the previous row integrated (Eq. 2)."""
+    state, inputs = _row_inputs(params, state, inputs, model)
+    plus, minus = params.robot.rate_pairs
+    rates = state.gyro_hold[plus] - state.gyro_hold[minus]
+    z = state.z + inputs.dt.astype(state.z.dtype) * rates
+    return _baseline_out(params, state, inputs, z, z)
+
+
+def hall_step(params: Params, state: FilterState, inputs: SensorSeries,
+              model: AbstractModel):
+    """A Hall baseline's step (``AbstractHall``): its side's sensor of each joint axis
+    through Eq. 1, the last angle held where it has no reading."""
+    state, inputs = _row_inputs(params, state, inputs, model)
+    dtype = state.z.dtype
+    angle, _, valid = hall_measurements(params, inputs.hall_v.astype(dtype))
+    side = model.side
+    z = jnp.where(valid[side::2], angle[side::2], state.z)
+    K, J = params.robot.n_angles, params.robot.n_joint_axes
+    return _baseline_out(params, state, inputs, z,
+                         jnp.concatenate([z, jnp.full(K - J, jnp.nan, dtype)]))
+
+
+def _baseline_out(params, state, inputs, z, angles):
+    dtype = state.z.dtype
+    gyro = inputs.gyro.astype(dtype)
+    nan_k = jnp.full(params.robot.n_angles, jnp.nan, dtype)
+    hold = jnp.where(jnp.isfinite(gyro), gyro, state.gyro_hold)
+    return FilterState(z, state.P, hold), Estimate(angles, nan_k, nan_k, jnp.zeros((), bool))
+
+
+def step(
+    params: Params, state: FilterState, inputs: SensorSeries,
+    method: str | AbstractModel = "kckf"
+) -> tuple[FilterState, Estimate]:
+    """One time step of ``method`` (a model of ``_models`` or its name): predict from the
+    previous row, then update with this row.
+
+    Pure and jit-friendly (``method`` must be static). ``inputs`` is one row of a
+    ``SensorSeries``; a reading outside ``params.limits`` counts as missing.
+    """
+    model = model_of(method)
+    if model.kalman:
+        return kalman_step_moments(params, state, inputs, model)[:2]
+    if isinstance(model, Gyro):
+        return gyro_step(params, state, inputs, model)
+    if isinstance(model, AbstractHall):
+        return hall_step(params, state, inputs, model)
+    raise _no_kernel(model)
+
+
+def exact_kinematics(method: str | AbstractModel) -> bool:
+    """Whether ``method`` models the chain's exact kinematics (``kckf3d``): then no two gyro
+    channels measure the same rate (``_screen.stand_ins``; ``AbstractModel.gyro_pairs``)."""
+    return not model_of(method).gyro_pairs
+
+
+def plausible(params: Params, series: SensorSeries, method: str | AbstractModel = "kckf"
+              ) -> SensorSeries:
+    """``series`` (a row, a recording or a batch) as the filter uses it (``_screen.screen``):
+    every reading that cannot be a measurement (outside ``params.limits``, a railed Hall
+    sensor, an angle no joint reaches, a saturated gyro) made missing. Given a recording or a
+    batch (a time axis), also judged over time (``_health``): a Hall sensor that turns noisy
+    or sticks and a clipped gyro made missing, and a gyro reading missing for a while taken
+    from a gyro that measures the same rate (``Robot.gyro_stand_ins``; none for ``method``
+    ``"kckf3d"``: ``exact_kinematics``). Each path calls it once on its whole input (then
+    ``SensorSeries.screened``), the step on its row (where it changes nothing more)."""
+    if not series.screened:
+        gyro, hall_v = jnp.asarray(series.gyro), jnp.asarray(series.hall_v)
+        if jnp.ndim(series.dt) == 0:
+            used = screen(params, gyro, hall_v)
+            series = SensorSeries(series.dt, used.gyro, used.hall_v)
+        else:
+            gyro, hall_v, _ = screened_series(params, series.dt, gyro, hall_v,
+                                              exact_kinematics(method))
+            series = SensorSeries(series.dt, gyro, hall_v, screened=True)
+    return corrected(params, series)
+
+
+def corrected(params: Params, series: SensorSeries) -> SensorSeries:
+    """``series`` with the learned sensor effects of ``params`` taken out of its readings
+    (``_effects``; once: ``SensorSeries.corrected``); as it is when no effect is on."""
+    effects = params.effects
+    if effects is None or not effects.on or series.corrected:
+        return series
+    gyro, hall_v = corrected_readings(effects, params.robot, params.hall_coeffs,
+                                      jnp.asarray(series.gyro), jnp.asarray(series.hall_v))
+    return SensorSeries(series.dt, gyro, hall_v, screened=series.screened, corrected=True)
+
+
+def scan_filter(
+    params: Params, series: SensorSeries, method: str | AbstractModel = "kckf",
+    state: FilterState | None = None, remat_chunk: int | None = None,
+    innovations: bool = False,
+) -> tuple[FilterState, Estimate]:
+    """``lax.scan`` of ``step`` over one trial (not jitted: the building block of
+    ``run_filter`` and of the fitting loss).
+
+    ``remat_chunk``: split the scan into chunks of this many steps and recompute each chunk's
+    intermediate values in the backward pass (``jax.checkpoint``), so a gradient through
+    ``T`` steps stores about ``T / remat_chunk + remat_chunk`` states instead of all ``T``.
+    Either way each row's intermediate values are recomputed in the backward pass (only the
+    states are stored). The forward result is unchanged. ``innovations`` (a Kalman method):
+    the estimate also carries each row's fused Hall innovations (``Estimate.innovations``),
+    from the same steps.
+    """
+    check_method(method)
+    if state is None:
+        state = init_state(params, method)
+    series = plausible(params, series, method)
+
+    def body(carry, row):
+        if innovations:
+            new, est, mom = kalman_step_moments(params, carry, row, method)
+            return new, dataclasses.replace(est, innovations=(mom.nu, mom.s, mom.valid))
+        return step(params, carry, row, method)
+
+    if not remat_chunk:
+        # Each row recomputed under reverse mode (only the carries saved), as on the lanes
+        # path: 3 trials x 4,000 recorded-like bench rows, float32, the RMSE gradient 0.28 ->
+        # 0.20 s (the same values to the bit; compile 6.7 -> 5.9 s).
+        return jax.lax.scan(jax.checkpoint(body), state, series)
+    # Padding rows (dt = 0, every reading missing) are no-op steps.
+    return chunked_scan(body, state, series, int(remat_chunk), (0.0, jnp.nan, jnp.nan))
