@@ -145,3 +145,14 @@ def _types_in(hint):
     yield hint
     for arg in typing.get_args(hint):
         yield from _types_in(arg)
+
+
+def test_the_top_level_shows_the_folders():
+    """``kckf_jax/`` holds the public face and the concept folders (docs/architecture.md),
+    at most a dozen entries: a new module goes into the folder of its concept. (``_data``:
+    the sample sessions an installed wheel carries, ``pyproject.toml``.)"""
+    entries = sorted(n for n in os.listdir(PKG)
+                     if n not in ("__pycache__", "_data") and not n.startswith("."))
+    assert len(entries) <= 12, entries
+    loose = [n for n in entries if n.endswith(".py")]
+    assert loose == ["__init__.py", "__main__.py", "export_loader.py"], loose
