@@ -10,10 +10,13 @@ The public API (everything else lives in private modules; docs/architecture.md m
 * the filters as model objects (every ``method`` argument takes the object or its name):
   ``AbstractModel``, ``KCKF``, ``KF``, ``ExactKCKF``, ``Gyro``, ``HallL``, ``HallR``;
   ``MODELS`` (the one table of names), ``model_of``, ``register_model``;
-* the filter's kernel: ``SensorSeries``, ``FilterState``, ``Estimate``, ``METHODS``,
-  ``init_state``, ``step``, ``scan_filter``, ``pad_series`` (the state's block layout and
-  the paper's matrices are internals: ``kckf_jax._models._blocks``, which benchmarks and
-  tests read);
+* the filter's kernel: ``SensorSeries`` (the readings as recorded), ``FilterState``,
+  ``Estimate``, ``METHODS``, ``init_state``, ``step``, ``scan_filter``, ``pad_series``;
+  the readings prepared once: ``prepare`` (a recording or a batch) and ``prepare_row`` (a
+  lone row) make the ``FilterInput`` that ``step``, ``scan_filter`` and every path compute
+  on; ``ScreenedSeries`` (judged, the sensor effects still in; ``screened``'s result).
+  The state's block layout and the paper's matrices are internals
+  (``kckf_jax._models._blocks``, which benchmarks and tests read);
 * running it: ``run_filter`` (one recording), ``filter_batch`` (padded trials),
   ``filter_sessions`` (recorded sessions), ``session_series``, ``session_params``,
   ``screened`` (the readings as the filter uses them, and why not: once for many runs),
@@ -98,6 +101,7 @@ from ._models._hall import hall_slope as hall_slope
 from ._models._hall import hall_voltage as hall_voltage
 from ._models._kernel import METHODS as METHODS
 from ._models._kernel import Estimate as Estimate
+from ._models._kernel import FilterInput as FilterInput
 from ._models._kernel import FilterState as FilterState
 from ._models._kernel import SensorSeries as SensorSeries
 from ._models._kernel import init_state as init_state
@@ -140,6 +144,9 @@ from ._readings._bias_steps import bias_steps as bias_steps
 from ._readings._drift import hall_drift as hall_drift
 from ._readings._gaps import GapPolicy as GapPolicy
 from ._readings._mismatch import model_mismatch as model_mismatch
+from ._readings._prepare import ScreenedSeries as ScreenedSeries
+from ._readings._prepare import prepare as prepare
+from ._readings._prepare import prepare_row as prepare_row
 from ._readings._screen import FAULT_KINDS as FAULT_KINDS
 from ._readings._screen import fault_stretches as fault_stretches
 from ._readings._setup_check import SetupFinding as SetupFinding

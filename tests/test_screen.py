@@ -246,7 +246,7 @@ def test_a_recording_screened_once_is_not_judged_again(disconnected):
     params = Params.paper_defaults(ROBOT, bad.hall_models)
     raw = kk.session_series(bad, jnp.float32)
     series, codes = kk.screened(params, raw)
-    assert series.screened and int((np.asarray(codes) == RAILED).sum()) > 0
+    assert isinstance(series, kk.ScreenedSeries) and int((np.asarray(codes) == RAILED).sum()) > 0
     again, none = kk.screened(params, series)
     assert again is series and none is None
     _, ref = kk.run_filter(params, raw, "kckf", path="sequential")

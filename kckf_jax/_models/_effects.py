@@ -39,7 +39,7 @@ monotone, and four steps reach the root to rounding for corrections of degrees),
 path, the smoother, the likelihood, the stream and the exported step use the corrected
 readings through their own Eq. 1, and the voltage noise model takes the slope where the
 corrected reading sits. The corrections are made once per series, after the readings are
-judged (``_kernel.plausible``): a faulty reading is judged on what the sensor gave.
+judged (``_readings._prepare``): a faulty reading is judged on what the sensor gave.
 
 Leaves are unconstrained and in units where a typical size is about 1 (the optimiser's steps
 are about its learning rate): play and curve in deg, gyro scale in %, the offset in units of

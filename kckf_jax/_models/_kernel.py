@@ -22,7 +22,7 @@ Conventions shared with the NumPy reference in ``tests/``:
   railed Hall sensor, an angle no joint reaches, a saturated gyro: ``_screen``; a Hall sensor
   isolated over time, a clipped gyro: ``_health``) is treated as missing, and a gyro reading
   missing for a while is taken from a gyro measuring the same rate (``Robot.gyro_stand_ins``)
-  where one reads (``plausible``);
+  where one reads (``_readings._prepare``: the step computes on prepared readings);
 * a Kalman step whose new state is not finite is skipped: the state is kept as it was, and
   ``Estimate.skipped`` says so (the streaming filter reports it as ``rejected``);
 * a padded step (``dt = 0``, every reading NaN) leaves the state unchanged.
@@ -44,8 +44,6 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from .._readings._health import screened_series
-from .._readings._screen import screen
 from . import _exact
 from ._blocks import (
     ProcessNoise,
@@ -67,7 +65,6 @@ from ._classes import (
     model_of,
 )
 from ._custom_types import BlockCov, BlockHall, BlockRates, BlockState, BlockValid
-from ._effects import corrected_readings, timed_hold
 from ._hall import hall_angle, hall_slope
 from ._kalman import coordinate_update, fused_pairs, symmetrise
 from ._params import Params
@@ -86,12 +83,25 @@ class SensorSeries(eqx.Module):
     dt: Float[ArrayLike, "*T"]
     gyro: Float[ArrayLike, "*T G"]
     hall_v: Float[ArrayLike, "*T M"]
-    #: Whether the readings are already as the filter uses them (``plausible``'s result):
-    #: then ``plausible`` leaves them as they are, so each path screens its input once.
-    screened: bool = eqx.field(static=True, default=False)
-    #: Whether the learned sensor effects (``Params.effects``) are already taken out of the
-    #: readings (``_effects.corrected_readings``): ``plausible`` does it once per series.
-    corrected: bool = eqx.field(static=True, default=False)
+
+
+class FilterInput(SensorSeries):
+    """The readings as the filter uses them, of one step, one trial or a batch (the fields
+    of ``SensorSeries``): judged (every reading the filter does not use is NaN, a gyro missing
+    for a while holds its stand-in's reading), in the filter's dtype, and with the learned
+    sensor effects taken out. Made by ``_readings._prepare`` alone (``kk.prepare`` for a
+    recording or a batch, ``kk.prepare_row`` for a lone row); ``step``, ``scan_filter`` and
+    every path compute on it and prepare nothing again."""
+
+
+def require_input(inputs, where: str) -> None:
+    """A clear error where a ``SensorSeries`` reaches the kernel unprepared."""
+    if not isinstance(inputs, FilterInput):
+        raise TypeError(
+            f"{where} takes the readings as the filter uses them (a FilterInput), not a "
+            f"{type(inputs).__name__}: prepare them first with kk.prepare(params, series, "
+            "method) (a recording or a batch) or kk.prepare_row(params, state, row, method) "
+            "(a lone row)")
 
 
 class FilterState(eqx.Module):
@@ -245,7 +255,7 @@ class BlockInputs(NamedTuple):
     vb: BlockValid
 
 
-def block_inputs(params: Params, st, gyro_hold: Float[Array, " G"], inputs: SensorSeries,
+def block_inputs(params: Params, st, gyro_hold: Float[Array, " G"], inputs: FilterInput,
                  in_loop: bool = True) -> BlockInputs:
     """One row's inputs laid out by axis block (``_model.Structure``). ``in_loop``: whether
     the row is taken inside a loop (``_blocks.static_take``)."""
@@ -379,14 +389,14 @@ class StepMoments(eqx.Module):
     F: Float[Array, "*T Nb Ny Nz"] | None = None
 
 
-def kalman_step_moments(params: Params, state: FilterState, inputs: SensorSeries,
+def kalman_step_moments(params: Params, state: FilterState, inputs: FilterInput,
                         method: str | AbstractModel) -> tuple[FilterState, Estimate,
                                                               StepMoments]:
     """``step`` of a Kalman model (``_models.AbstractKalman``: its ``moments`` and
     ``estimate``), and its ``StepMoments``."""
     model = model_of(method)
     kept = state  # what a skipped update keeps
-    state, inputs = _row_inputs(params, state, inputs, model)
+    require_input(inputs, "step")
     F = None
     if isinstance(model, ExactKCKF):
         z, P, y, S, F, nu, s, vb, dt = exact_parts(params, state, inputs)
@@ -418,7 +428,7 @@ def model_estimate(robot, method: str | AbstractModel, z: BlockState, P: BlockCo
     return block_estimate(model.structure(robot), z, P)
 
 
-def exact_parts(params: Params, state: FilterState, inputs: SensorSeries):
+def exact_parts(params: Params, state: FilterState, inputs: FilterInput):
     """One ``kckf3d`` step (``_exact.exact_step``) laid out as one block (``Nb = 1``)."""
     dtype = state.z.dtype
     model = _exact.exact_model(params.robot)
@@ -436,37 +446,21 @@ def exact_block_estimate(robot, z: BlockState, P: BlockCov) -> Estimate:
     return Estimate(*_exact.exact_estimate(_exact.exact_model(robot), z[0], P[0]))
 
 
-def _row_inputs(params: Params, state: FilterState, inputs: SensorSeries,
-                method: str | AbstractModel):
-    """One row as the step uses it (``plausible``), and the state whose hold the prediction
-    integrates: a row that comes alone (a stream's packet, not a row of a corrected recording)
-    has its learned gyro timing applied here, with the hold (``_effects.timed_hold``); the
-    hold the step keeps is this row's reading either way."""
-    alone = not inputs.corrected
-    inputs = plausible(params, inputs, method)
-    if alone and params.effects is not None:
-        gyro = inputs.gyro.astype(state.gyro_hold.dtype)
-        state = dataclasses.replace(state, gyro_hold=timed_hold(params.effects,
-                                                                state.gyro_hold, gyro))
-        inputs = dataclasses.replace(inputs, gyro=gyro)
-    return state, inputs
-
-
-def gyro_step(params: Params, state: FilterState, inputs: SensorSeries,
+def gyro_step(params: Params, state: FilterState, inputs: FilterInput,
               model: AbstractModel):
     """``Gyro``'s step: the joint and torso rates of the previous row integrated (Eq. 2)."""
-    state, inputs = _row_inputs(params, state, inputs, model)
+    require_input(inputs, "step")
     plus, minus = params.robot.rate_pairs
     rates = state.gyro_hold[plus] - state.gyro_hold[minus]
     z = state.z + inputs.dt.astype(state.z.dtype) * rates
     return _baseline_out(params, state, inputs, z, z)
 
 
-def hall_step(params: Params, state: FilterState, inputs: SensorSeries,
+def hall_step(params: Params, state: FilterState, inputs: FilterInput,
               model: AbstractModel):
     """A Hall baseline's step (``AbstractHall``): its side's sensor of each joint axis
     through Eq. 1, the last angle held where it has no reading."""
-    state, inputs = _row_inputs(params, state, inputs, model)
+    require_input(inputs, "step")
     dtype = state.z.dtype
     angle, _, valid = hall_measurements(params, inputs.hall_v.astype(dtype))
     side = model.side
@@ -492,8 +486,11 @@ def step(
     previous row, then update with this row.
 
     Pure and jit-friendly (``method`` must be static). ``inputs`` is one row of a
-    ``SensorSeries``; a reading outside ``params.limits`` counts as missing.
+    ``FilterInput`` (``kk.prepare_row`` makes one of a lone row: a reading outside
+    ``params.limits`` is then missing); anything else is refused with a ``TypeError`` that
+    says so.
     """
+    require_input(inputs, "step")
     model = model_of(method)
     if model.kalman:
         return kalman_step_moments(params, state, inputs, model)[:2]
@@ -508,39 +505,6 @@ def exact_kinematics(method: str | AbstractModel) -> bool:
     """Whether ``method`` models the chain's exact kinematics (``kckf3d``): then no two gyro
     channels measure the same rate (``_screen.stand_ins``; ``AbstractModel.gyro_pairs``)."""
     return not model_of(method).gyro_pairs
-
-
-def plausible(params: Params, series: SensorSeries, method: str | AbstractModel = "kckf"
-              ) -> SensorSeries:
-    """``series`` (a row, a recording or a batch) as the filter uses it (``_screen.screen``):
-    every reading that cannot be a measurement (outside ``params.limits``, a railed Hall
-    sensor, an angle no joint reaches, a saturated gyro) made missing. Given a recording or a
-    batch (a time axis), also judged over time (``_health``): a Hall sensor that turns noisy
-    or sticks and a clipped gyro made missing, and a gyro reading missing for a while taken
-    from a gyro that measures the same rate (``Robot.gyro_stand_ins``; none for ``method``
-    ``"kckf3d"``: ``exact_kinematics``). Each path calls it once on its whole input (then
-    ``SensorSeries.screened``), the step on its row (where it changes nothing more)."""
-    if not series.screened:
-        gyro, hall_v = jnp.asarray(series.gyro), jnp.asarray(series.hall_v)
-        if jnp.ndim(series.dt) == 0:
-            used = screen(params, gyro, hall_v)
-            series = SensorSeries(series.dt, used.gyro, used.hall_v)
-        else:
-            gyro, hall_v, _ = screened_series(params, series.dt, gyro, hall_v,
-                                              exact_kinematics(method))
-            series = SensorSeries(series.dt, gyro, hall_v, screened=True)
-    return corrected(params, series)
-
-
-def corrected(params: Params, series: SensorSeries) -> SensorSeries:
-    """``series`` with the learned sensor effects of ``params`` taken out of its readings
-    (``_effects``; once: ``SensorSeries.corrected``); as it is when no effect is on."""
-    effects = params.effects
-    if effects is None or not effects.on or series.corrected:
-        return series
-    gyro, hall_v = corrected_readings(effects, params.robot, params.hall_coeffs,
-                                      jnp.asarray(series.gyro), jnp.asarray(series.hall_v))
-    return SensorSeries(series.dt, gyro, hall_v, screened=series.screened, corrected=True)
 
 
 def scan_filter(
@@ -562,7 +526,7 @@ def scan_filter(
     check_method(method)
     if state is None:
         state = init_state(params, method)
-    series = plausible(params, series, method)
+    require_input(series, "scan_filter")
 
     def body(carry, row):
         if innovations:

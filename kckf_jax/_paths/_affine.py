@@ -22,6 +22,7 @@ from .._models._classes import structure
 from .._models._custom_types import BlockCov, BlockMap, HallMap, RateMap
 from .._models._kernel import (
     BlockInputs,
+    FilterInput,
     SensorSeries,
     block_estimate,
     block_inputs,
@@ -206,8 +207,8 @@ def converged_map(params: Params, method: str, P: BlockCov, dt: Float[Array, ""]
     st = structure(params.robot, method)
     dtype = P.dtype
     robot = params.robot
-    inputs = SensorSeries(dt.astype(dtype), jnp.zeros(3 * robot.n_links, dtype),
-                          jnp.zeros(robot.n_hall, dtype))
+    inputs = FilterInput(dt.astype(dtype), jnp.zeros(3 * robot.n_links, dtype),
+                         jnp.zeros(robot.n_hall, dtype))
     row = block_inputs(params, st, jnp.zeros(3 * robot.n_links, dtype), inputs,
                        in_loop=False)
     P_new, A, Gr, Gh, _ = step_maps(params, st, P, row)

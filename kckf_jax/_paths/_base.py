@@ -23,10 +23,11 @@ import numpy as np
 from jaxtyping import Array, Bool, Float
 
 from .._models._classes import model_of
-from .._models._kernel import Estimate, FilterState, SensorSeries
+from .._models._kernel import Estimate, FilterInput, FilterState, SensorSeries
 from .._models._params import Params
 from .._models._robot import Robot
 from .._readings._health import screened_series
+from .._readings._prepare import ScreenedSeries
 from .._readings._screen import screen
 
 #: Two time steps closer than this (s) count as equal: a constant step to the filter.
@@ -248,7 +249,7 @@ def regular_step(params: Params, series: SensorSeries) -> tuple[float | None, st
     # Judged as the paths will judge them: over time where the parameters are known (a Hall
     # sensor the health monitor isolates makes a recording irregular), row by row where a
     # caller's trace holds them.
-    if series.screened:
+    if isinstance(series, (ScreenedSeries, FilterInput)):
         how, p = "as_is", _Layout(params.robot, params.limits, None)
     elif is_traced(params):
         how, p = "rows", _layout(params)

@@ -33,9 +33,9 @@ from .._models._kernel import (
     FilterState,
     SensorSeries,
     block_hall,
-    plausible,
 )
 from .._models._params import Params
+from .._readings._prepare import prepare
 from ._base import AbstractPath, PathCost, SmootherLayout, is_traced, kalman_only
 from ._lane_step import _apply, _Consts, _tri, _tri_index, lane_step, pack_tape
 from ._lanes_adjoint import scan_rows
@@ -333,8 +333,7 @@ class Lanes(AbstractPath):
             ) -> tuple[FilterState, Estimate]:
         st = structure(params.robot, method)
         dtype = state.z.dtype
-        series = plausible(params, jax.tree_util.tree_map(
-            lambda x: jnp.asarray(x).astype(dtype), series))
+        series = prepare(params, series, method, dtype)
         run = lane_scan(params, st, LaneState(state.z, state.P, state.gyro_hold),
                         lane_inputs(params, st, series.dt, series.gyro, series.hall_v),
                         self.remat_chunk)

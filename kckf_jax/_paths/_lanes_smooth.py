@@ -18,8 +18,9 @@ from jaxtyping import Array, Bool, Float
 
 from .._models._blocks import Structure
 from .._models._kalman import cholesky_solve
-from .._models._kernel import FilterState, SensorSeries, plausible
+from .._models._kernel import FilterState, SensorSeries
 from .._models._params import Params
+from .._readings._prepare import prepare
 from ._lane_step import _Consts, _tri
 from ._lanes import LaneMoments, LaneState, lane_estimates, lane_inputs, lane_moments_scan
 
@@ -93,8 +94,7 @@ def lane_smooth(params: Params, st: Structure, series: SensorSeries, state: Filt
     """The smoothed angles, their standard deviations and biases of a batch of trials (leading
     axis ``B`` on ``series`` and ``state``), and the skipped rows."""
     dtype = state.z.dtype
-    series = plausible(params, jax.tree_util.tree_map(
-        lambda x: jnp.asarray(x).astype(dtype), series))
+    series = prepare(params, series, dtype=dtype)  # a linear model: the paper's gyro pairs
     rows = lane_moments_scan(params, st, LaneState(state.z, state.P, state.gyro_hold),
                              lane_inputs(params, st, series.dt, series.gyro,
                                          series.hall_v)).rows

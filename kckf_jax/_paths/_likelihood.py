@@ -32,8 +32,9 @@ from jaxtyping import Array, Float
 
 from .._models._classes import AbstractModel, structure
 from .._models._hall import hall_slope
-from .._models._kernel import SensorSeries, hall_measurements, init_states, plausible
+from .._models._kernel import SensorSeries, hall_measurements, init_states
 from .._models._params import Params
+from .._readings._prepare import prepare
 from .._readings._stats import chi2_quantile
 from . import AbstractPath, as_path
 from ._lanes import LaneState, lane_innovations_scan, lane_inputs
@@ -72,8 +73,7 @@ def lane_innovations(params: Params, batch: SensorSeries, method: str = "kckf",
     st = structure(params.robot, method)
     state = init_states(params, method, jnp.shape(batch.dt)[0])
     dtype = state.z.dtype
-    series = plausible(params, jax.tree_util.tree_map(lambda x: jnp.asarray(x).astype(dtype),
-                                                      batch))
+    series = prepare(params, batch, method, dtype)
     run = lane_innovations_scan(params, st, LaneState(state.z, state.P, state.gyro_hold),
                                 lane_inputs(params, st, series.dt, series.gyro, series.hall_v),
                                 remat_chunk)
@@ -90,9 +90,8 @@ def hall_nll(params: Params, series: SensorSeries, method: str | AbstractModel =
     batch = jax.tree_util.tree_map(jnp.asarray, series)
     if batch.dt.ndim == 1:
         batch = jax.tree_util.tree_map(lambda x: x[None], batch)
-    # Screened once (``plausible``: the readings the filter uses), for both kinds of term.
-    batch = plausible(params, jax.tree_util.tree_map(
-        lambda x: x.astype(params.log_q.dtype), batch), method)
+    # Prepared once (``_prepare.prepare``: the readings the filter uses), for both kinds of term.
+    batch = prepare(params, batch, method, params.log_q.dtype)
     if as_path(path).batch_layout(batch.dt.shape[0], method) == "lanes":
         nu, s, valid = lane_innovations(params, batch, method)
     else:

@@ -17,8 +17,9 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from .._models._classes import structure
-from .._models._kernel import Estimate, FilterState, SensorSeries, block_estimate, plausible
+from .._models._kernel import Estimate, FilterInput, FilterState, SensorSeries, block_estimate
 from .._models._params import Params
+from .._readings._prepare import prepare
 from ._affine import covariance_phase, series_inputs
 from ._base import AbstractPath, kalman_only
 
@@ -42,14 +43,13 @@ def _one_trial(params: Params, series: SensorSeries, method: str, state: FilterS
                ) -> tuple[FilterState, Estimate]:
     st = structure(params.robot, method)
     dtype = state.z.dtype
-    series = plausible(params, jax.tree_util.tree_map(lambda x: jnp.asarray(x).astype(dtype),
-                                                      series))
+    series = prepare(params, series, method, dtype)
     rows, _ = series_inputs(params, st, series, state.gyro_hold)
     P_last, maps = covariance_phase(params, st, state.P, rows)
     Ps, As, ok = maps.P, maps.A, maps.ok
     # A skipped row keeps the whole state, its gyro hold included: the rates of the rows after
     # it come from the holds without its readings (the covariance does not depend on them).
-    kept = SensorSeries(series.dt, jnp.where(ok[:, None], series.gyro, jnp.nan), series.hall_v)
+    kept = FilterInput(series.dt, jnp.where(ok[:, None], series.gyro, jnp.nan), series.hall_v)
     kept_rows, held = series_inputs(params, st, kept, state.gyro_hold)
     # c_k = Gr_k r_k + Gh_k h_k, with the entering state folded into the first row.
     c = (jnp.einsum("kpaj,kpj->kpa", maps.Gr, kept_rows.rates)

@@ -21,16 +21,16 @@ from .._models._classes import AbstractModel, method_name, model_of
 from .._models._fault_policy import FaultPolicy
 from .._models._kernel import (
     Estimate,
+    FilterInput,
     FilterState,
     SensorSeries,
-    exact_kinematics,
     init_state,
     init_states,
 )
 from .._models._params import Params
 from .._readings._batching import pad_series
 from .._readings._gaps import GapPolicy
-from .._readings._health import screened_series
+from .._readings._prepare import ScreenedSeries, judged
 from .._sessions._session import Session, split_at_gaps
 from . import AbstractPath, PathChoice, as_path
 from ._smooth import smooth_batch
@@ -99,26 +99,25 @@ def _named(est: Estimate, path: AbstractPath, params: Params, faults) -> Estimat
 
 def screened(params: Params, series: SensorSeries, method: str | AbstractModel = "kckf"
              ) -> tuple[SensorSeries, Array | None]:
-    """``series`` (one recording or a batch) as the filter uses it (the kernel's
-    ``plausible``: judged row by row and over time), and why each reading it does not use is
-    not used (``Estimate.faults``: codes of ``_screen.FAULT_KINDS``). Every path is given
-    the screened series (``SensorSeries.screened``), so the readings are judged once. To
-    filter one recording many times with parameters of the same Hall curves, screen it once
-    and pass the screened series: it is not judged again (its faults are the codes returned
-    here; ``Estimate.faults`` is then ``None``)."""
-    if series.screened:
+    """``series`` (one recording or a batch) judged as the filter uses it, in the parameters'
+    dtype (``_prepare.judged``: row by row and over time; a ``ScreenedSeries``), and why each
+    reading it does not use is not used (``Estimate.faults``: codes of
+    ``_screen.FAULT_KINDS``). Every path is given the screened series, so the readings are
+    judged once. To filter one recording many times with parameters of the same Hall curves,
+    screen it once and pass the screened series: it is not judged again (its faults are the
+    codes returned here; ``Estimate.faults`` is then ``None``). A ``ScreenedSeries`` or a
+    ``FilterInput`` is returned as it is, with ``None``."""
+    if isinstance(series, (ScreenedSeries, FilterInput)):
         return series, None
-    return _screened(params, series, exact_kinematics(method))
+    return _screened(params, series, method_name(method))
 
 
 @eqx.filter_jit
-def _screened(params: Params, series: SensorSeries, exact: bool
-              ) -> tuple[SensorSeries, Array]:
+def _screened(params: Params, series: SensorSeries, method: str
+              ) -> tuple[ScreenedSeries, Array]:
     dtype = params.log_q.dtype
-    gyro, hall_v, codes = screened_series(params, jnp.asarray(series.dt, dtype),
-                                          jnp.asarray(series.gyro, dtype),
-                                          jnp.asarray(series.hall_v, dtype), exact)
-    return SensorSeries(jnp.asarray(series.dt, dtype), gyro, hall_v, screened=True), codes
+    return judged(params, jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype), series),
+                  method)
 
 
 def series_faults(params: Params, series: SensorSeries, method: str = "kckf") -> Array:

@@ -39,8 +39,9 @@ import numpy as np
 from jaxtyping import Array, Bool
 
 from .._models._classes import model_of, structure
-from .._models._kernel import Estimate, FilterState, SensorSeries, plausible
+from .._models._kernel import Estimate, FilterState, SensorSeries
 from .._models._params import Params
+from .._readings._prepare import prepare
 from ._base import AbstractPath, PathCost, PathRun, is_traced, kalman_only
 from ._lanes import NO_OP_INPUTS, LaneRows, LaneState, lane_estimates, lane_inputs, lane_scan
 from ._sequential import Sequential
@@ -176,8 +177,7 @@ class Segments(AbstractPath):
         ``ok``."""
         st = structure(params.robot, method)
         dtype = state.z.dtype
-        series = plausible(params, jax.tree_util.tree_map(
-            lambda x: jnp.asarray(x).astype(dtype), series))
+        series = prepare(params, series, method, dtype)
         B, T, S, W, L = self._layout(series, dtype)
 
         def padded(x, fill):  # (B, T, ...) -> (B, S * L, ...): no-op rows at the end

@@ -10,6 +10,7 @@ import jax
 
 from .._models._kernel import Estimate, FilterState, SensorSeries, scan_filter
 from .._models._params import Params
+from .._readings._prepare import prepare
 from ._base import AbstractPath, PathCost
 
 
@@ -38,6 +39,7 @@ class Sequential(AbstractPath):
 
     def run(self, params: Params, series: SensorSeries, method: str, state: FilterState
             ) -> tuple[FilterState, Estimate]:
+        series = prepare(params, series, method)
         return jax.vmap(lambda s, x: scan_filter(params, s, method, x, self.remat_chunk))(
             series, state)
 
@@ -45,5 +47,6 @@ class Sequential(AbstractPath):
 
     def run_innovations(self, params: Params, series: SensorSeries, method: str,
                         state: FilterState) -> tuple[FilterState, Estimate]:
+        series = prepare(params, series, method)
         return jax.vmap(lambda s, x: scan_filter(params, s, method, x, self.remat_chunk,
                                                  innovations=True))(series, state)

@@ -36,9 +36,9 @@ from .._models._kernel import (
     init_states,
     kalman_step_moments,
     model_estimate,
-    plausible,
 )
 from .._models._params import Params
+from .._readings._prepare import prepare
 from . import AbstractPath, SmootherLayout, as_path, is_traced
 from ._lanes_smooth import lane_smooth
 from ._rts import rts_rows
@@ -52,8 +52,7 @@ def filter_moments(params: Params, series: SensorSeries, method: str,
     Nz``) and the ``StepMoments`` per row."""
     state = init_state(params, method) if state is None else state
     dtype = state.z.dtype
-    series = plausible(params, jax.tree_util.tree_map(lambda x: jnp.asarray(x).astype(dtype),
-                                                      series), method)
+    series = prepare(params, series, method, dtype)
 
     @jax.checkpoint
     def body(carry, row):

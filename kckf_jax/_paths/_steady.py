@@ -30,14 +30,15 @@ from .._models._classes import model_of, structure
 from .._models._kernel import (
     BlockInputs,
     Estimate,
+    FilterInput,
     FilterState,
     SensorSeries,
     block_estimate,
     block_update,
     init_state,
-    plausible,
 )
 from .._models._params import Params
+from .._readings._prepare import prepare
 from ._affine import (
     StepMaps,
     covariance_phase,
@@ -177,8 +178,7 @@ class Steady(AbstractPath):
         dtype = state.z.dtype
         n_head = self.head_rows(dtype)
         st = structure(params.robot, method)
-        series = plausible(params, jax.tree_util.tree_map(
-            lambda x: jnp.asarray(x).astype(dtype), series))
+        series = prepare(params, series, method, dtype)
         T = series.dt.shape[1]
         form = self._form(params, st, series, state)
         Ps, ok, P_ss = form.head.P, form.head.ok, form.map.P
@@ -322,9 +322,9 @@ def _head_covariance(params: Params, method: str, P0: Float[Array, "Nb Nz Nz"],
     st = structure(params.robot, method)
     dtype = P0.dtype
     robot = params.robot
-    series = SensorSeries(jnp.full(n + 1, step_s, dtype).at[0].set(0.0),
-                          jnp.zeros((n + 1, 3 * robot.n_links), dtype),
-                          jnp.zeros((n + 1, robot.n_hall), dtype))
+    series = FilterInput(jnp.full(n + 1, step_s, dtype).at[0].set(0.0),
+                         jnp.zeros((n + 1, 3 * robot.n_links), dtype),
+                         jnp.zeros((n + 1, robot.n_hall), dtype))
     rows, _ = series_inputs(params, st, series, jnp.zeros(3 * robot.n_links, dtype))
     zero = jnp.zeros(st.n_z, dtype)
 

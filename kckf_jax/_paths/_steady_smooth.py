@@ -27,8 +27,9 @@ from jaxtyping import Array, Bool, Float
 
 from .._models._blocks import predicted_moments
 from .._models._classes import structure
-from .._models._kernel import FilterState, SensorSeries, block_estimate, init_state, plausible
+from .._models._kernel import FilterInput, FilterState, SensorSeries, block_estimate, init_state
 from .._models._params import Params
+from .._readings._prepare import prepare
 from ._affine import output_map, reading_maps, series_inputs, step_maps
 from ._base import is_traced, regular_step, relative_change
 from ._rts import rts_covariance, rts_gain, rts_rows
@@ -116,8 +117,7 @@ class SteadySmoother(eqx.Module):
         dtype = state.z.dtype
         n_head = steady.head_rows(dtype)
         st = structure(params.robot, method)
-        series = plausible(params, jax.tree_util.tree_map(
-            lambda x: jnp.asarray(x).astype(dtype), series))
+        series = prepare(params, series, method, dtype)
         n_trials, T = series.dt.shape
         nz = st.n_z
         # The forward pass: Steady.run's covariances and maps, every row's block state.
@@ -211,9 +211,9 @@ def _tail_change(params: Params, method: str, P0: Float[Array, "Nb Nz Nz"],
     st = structure(params.robot, method)
     dtype = P0.dtype
     P_head, _ = _head_covariance(params, method, P0, step_s, n_head)
-    series = SensorSeries(jnp.full(2, step_s, dtype), jnp.zeros((2, 3 * params.robot.n_links),
-                                                                dtype),
-                          jnp.zeros((2, params.robot.n_hall), dtype))
+    series = FilterInput(jnp.full(2, step_s, dtype), jnp.zeros((2, 3 * params.robot.n_links),
+                                                               dtype),
+                         jnp.zeros((2, params.robot.n_hall), dtype))
     rows, _ = series_inputs(params, st, series, jnp.zeros(3 * params.robot.n_links, dtype))
     last = jax.tree_util.tree_map(lambda x: x[1], rows)
     P_ss = step_maps(params, st, P_head, last).P

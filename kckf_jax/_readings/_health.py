@@ -27,8 +27,8 @@ time step longer than ``RESTART_S`` (a gap) the reference starts again from the 
 nothing is judged on that step, so a gap or a restart never locks a sensor out.
 
 The monitor sees only the readings and the parameters, never the Kalman filter's state, so the
-same decisions reach every path (it runs once over a recording before any path, the kernel's
-``plausible``), the smoother, the likelihood, the fit (its decisions are constants of the
+same decisions reach every path (it runs once over a recording before any path:
+``_prepare.judged``), the smoother, the likelihood, the fit (its decisions are constants of the
 parameters: evaluated on ``stop_gradient``-ed values) and, packet by packet, the stream and
 the exported step (``health_step`` inside their jitted step, its state in theirs).
 """

@@ -23,8 +23,8 @@ kernel's ``gyro_hold``).
 
 Each decision looks at one row alone, so it is the same whether a row comes from a recording,
 a batch of trials or a live packet: ``screen`` works on any leading axes, on NumPy (the report
-and the packet parser: ``xp=np``) or JAX arrays (the kernel's ``plausible``, which every path
-calls). It is not differentiated: the decisions are constants of the parameters, and the
+and the packet parser: ``xp=np``) or JAX arrays (``_prepare``, which every path and the
+stream call). It is not differentiated: the decisions are constants of the parameters, and the
 curve is evaluated on ``stop_gradient``-ed coefficients.
 """
 

@@ -24,6 +24,7 @@ from .._models._params import Params
 from .._paths import STEP_TOL_S, Steady, converged_map, readings_present, relative_change
 from .._readings._gaps import GapPolicy
 from .._readings._health import by_policy, health_step, init_health
+from .._readings._prepare import ScreenedSeries, prepare_row
 from .._readings._screen import FAULT_KINDS, screen
 from ._packets import USED, Packet, PacketParser
 
@@ -411,8 +412,9 @@ def stream_step_fn(params: Params, method: str, health: bool = False):
             if p.faults.monitors:  # as the batch filter's ``_health.screened_series``
                 h, *watched = health_step(p, h, inputs.dt, used.gyro, used.hall_v, exact)
             gyro, hall_v, codes = by_policy(p.faults, used, watched)
-            inputs = SensorSeries(inputs.dt, gyro, hall_v)
-        new, est = step(p, state, inputs, method)  # a non-finite update keeps the state
+            inputs = ScreenedSeries(inputs.dt, gyro, hall_v)  # judged: not screened again
+        state, row = prepare_row(p, state, inputs, method)
+        new, est = step(p, state, row, method)  # a non-finite update keeps the state
         ok = ~est.skipped
         out = [est.angles, est.angle_std, ok[None].astype(x.dtype)]
         if health:
