@@ -13,9 +13,9 @@ import pytest
 
 from kckf_jax import cli
 from kckf_jax._fitting._fit import LOSSES
+from kckf_jax._models._classes import KALMAN_METHODS, METHODS
 from kckf_jax._models._effects import EFFECTS as LEARNABLE
 from kckf_jax._models._fault_policy import FAULT_POLICIES
-from kckf_jax._models._kernel import KALMAN_METHODS, METHODS
 from kckf_jax._models._params import ALL_LEAVES, HALL_NOISE_MODELS
 from kckf_jax._readings._gaps import ON_GAP
 from kckf_jax._sessions._sim_faults import FAULT_KINDS

@@ -17,6 +17,7 @@ from kckf_jax import (
     filter_batch,
     init_state,
     pad_series,
+    prepare_row,
     run_filter,
     step,
 )
@@ -61,6 +62,7 @@ def _check_invariants(params, series, method):
     D = np.hstack([robot.torso_sum, -np.eye(robot.n_torso_axes)])
     for k in range(series.dt.shape[0]):
         row = jax.tree_util.tree_map(lambda x, k=k: x[k], series)
+        state, row = prepare_row(params, state, row, method)  # the row screened alone
         state, est = step(params, state, row, method)
         Pb = np.asarray(state.P, np.float64)
         assert np.all(np.isfinite(Pb)) and np.all(np.isfinite(np.asarray(state.z)))

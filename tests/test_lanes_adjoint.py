@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from kckf_jax import Lanes, Params, Robot, SensorSeries, filter_batch, pad_series, simulate
-from kckf_jax._models._kernel import init_states
+from kckf_jax._models._classes import init_states
 from kckf_jax._paths._likelihood import hall_nll
 
 AUTOMATIC = Lanes(remat_chunk=40)  # chunked checkpoints: JAX's own transpose of the step

@@ -20,6 +20,7 @@ from kckf_jax import (
     filter_sessions,
     init_state,
     observability_ranks,
+    prepare_row,
     rmse_table,
     run_filter,
     session_series,
@@ -54,6 +55,7 @@ def _float32_run(params, series, method):
     grows to ~1e6 rad^2 in an hour, beside entries of 1e-8)."""
 
     def body(state, row):
+        state, row = prepare_row(params, state, row, method)  # the row screened alone
         state, est = step(params, state, row, method)
         P = state.P.astype(jnp.float64)  # (blocks, Nz, Nz); one small factor per block
         low = jnp.min(jnp.stack([jnp.min(jnp.diag(jnp.linalg.cholesky(P[b])))

@@ -414,7 +414,7 @@ def test_the_one_kernel_step_is_the_plain_step(monkeypatch):
     kernel here (the tests enable XLA's CPU loops, as the command does); and a packet whose
     time step is not a number runs nothing (the state kept, ``ok = 0``)."""
     import kckf_jax as kk
-    from kckf_jax._models._kernel import init_state
+    from kckf_jax._models._classes import init_state
     from kckf_jax._readings._health import init_health
     from kckf_jax._stream import _filter
 

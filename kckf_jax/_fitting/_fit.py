@@ -25,10 +25,17 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
-from .._models._classes import MODELS, AbstractModel, method_name, register_model
+from .._models._classes import (
+    KALMAN_METHODS,
+    MODELS,
+    AbstractModel,
+    init_state,
+    method_name,
+    register_model,
+)
 from .._models._effects import EFFECT_OF_LEAF, EFFECTS, angle_rates
 from .._models._fault_policy import FaultPolicy
-from .._models._kernel import KALMAN_METHODS, SensorSeries, init_state
+from .._models._kernel import SensorSeries
 from .._models._params import ALL_LEAVES, Params, with_floors
 from .._paths import AbstractPath, Auto, Sequential, as_path, regular_step
 from .._paths._likelihood import hall_nll

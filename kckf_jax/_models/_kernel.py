@@ -1,15 +1,14 @@
-"""The filter's kernel: its types, the block operations, ``step`` and ``scan_filter``.
+"""The filter's kernel: its types and the arithmetic the models' steps share.
 
-``step(params, state, inputs, method) -> (state, estimate)`` is the only implementation of
-each method (a model of ``_models`` or its name); ``scan_filter`` strings it together with
-``lax.scan`` over a recording. Every way of computing the filter (``_paths``: sequential,
-steady, parallel, ...), the streaming filter and the exported step are built on what is
-here; this module imports none of them.
-
-The methods are models (``_models``: ``KCKF``, ``KF``, ``Gyro``, ``HallL``, ``HallR``,
-``ExactKCKF``; ``MODELS`` names them): ``init_state`` and ``step`` compute each by its class,
-``kalman_step_moments`` the Kalman ones from the linear block arithmetic here or the exact
-model's (``_exact.py``).
+The types: ``SensorSeries`` (the readings as recorded), ``FilterInput`` (as the filter uses
+them: the only input a step takes; ``_readings._prepare`` makes it), ``FilterState``,
+``Estimate``, ``StepMoments``, ``BlockInputs``. The arithmetic: the Hall measurements of a
+row, the paper's linear models block by block (``block_inputs``, ``block_step``,
+``block_update``, ``block_estimate``) and the exact chain's step laid out as one block
+(``exact_parts``). The models (``_classes``: ``KCKF``, ``KF``, ``ExactKCKF``, ``Gyro``,
+``HallL``, ``HallR``) own their states and steps and are built on what is here, as every way
+of computing the filter (``_paths``), the streaming filter and the exported step are; this
+module imports none of them.
 
 Conventions shared with the NumPy reference in ``tests/``:
 
@@ -35,11 +34,9 @@ coordinates of ``_blocks.structure``. There is no matrix inverse or LAPACK call 
 
 from __future__ import annotations
 
-import dataclasses
 from typing import NamedTuple
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
@@ -48,28 +45,14 @@ from . import _exact
 from ._blocks import (
     ProcessNoise,
     block_gather,
-    initial_covariance,
     predicted_moments,
     q_blocks,
     static_take,
-)
-from ._chunked_scan import chunked_scan
-from ._classes import (
-    KALMAN_METHODS,
-    METHODS,
-    AbstractHall,
-    AbstractLinearKalman,
-    AbstractModel,
-    ExactKCKF,
-    Gyro,
-    model_of,
 )
 from ._custom_types import BlockCov, BlockHall, BlockRates, BlockState, BlockValid
 from ._hall import hall_angle, hall_slope
 from ._kalman import coordinate_update, fused_pairs, symmetrise
 from ._params import Params
-
-__all__ = ["KALMAN_METHODS", "METHODS"]  # the table's (``_models``), re-exported
 
 
 class SensorSeries(eqx.Module):
@@ -164,55 +147,6 @@ class Estimate(eqx.Module):
         values = np.asarray(getattr(self, what))
         return {n: values[..., k] for k, n in enumerate(self.names)
                 if np.isfinite(values[..., k]).any()}
-
-
-def check_method(method: str | AbstractModel) -> None:
-    """A ``ValueError`` naming the known methods unless ``method`` is a model or the name of
-    one (``_models.MODELS``)."""
-    model_of(method)
-
-
-def estimated(robot, method: str | AbstractModel) -> np.ndarray:
-    """Which of ``robot.angle_names`` ``method`` estimates (``K`` bools): every angle, except
-    the torso angles for the single-sensor Hall baselines (``AbstractModel.torso``)."""
-    return model_of(method).estimated(robot)
-
-
-def init_state(params: Params, method: str | AbstractModel = "kckf") -> FilterState:
-    """The state before the first row: zero angles and biases, covariance from ``params``
-    (by the model's kind: ``_models``)."""
-    model = model_of(method)
-    robot = params.robot
-    dtype = params.log_q.dtype
-    hold = jnp.zeros(3 * robot.n_links, dtype)
-    if isinstance(model, AbstractLinearKalman):
-        P0 = initial_covariance(model.structure(robot), params)
-        return FilterState(jnp.zeros(P0.shape[:2], dtype), P0, hold)
-    if isinstance(model, ExactKCKF):
-        exact = _exact.exact_model(robot)
-        p0_bias = _exact.gyro_bias_noise(exact, params.q, params.bias_rw, params.p0_bias)[2]
-        P0 = _exact.initial_covariance(exact, params.p0_angle, p0_bias)[None].astype(dtype)
-        return FilterState(jnp.zeros(P0.shape[:2], dtype), P0, hold)
-    if isinstance(model, Gyro):
-        return FilterState(jnp.zeros(robot.n_angles, dtype), jnp.zeros((0, 0), dtype), hold)
-    if isinstance(model, AbstractHall):
-        return FilterState(jnp.full(robot.n_joint_axes, jnp.nan, dtype),
-                           jnp.zeros((0, 0), dtype), hold)
-    raise _no_kernel(model)
-
-
-def _no_kernel(model) -> TypeError:
-    return TypeError(f"{type(model).__name__}: the kernel has no step for this kind of model; "
-                     "subclass one of kckf_jax's models (KCKF, KF, ExactKCKF, Gyro, HallL, "
-                     "HallR)")
-
-
-@eqx.filter_jit  # one program, not a dozen op-by-op ones, when called outside a trace
-def init_states(params: Params, method: str, n: int) -> FilterState:
-    """``init_state`` for each of ``n`` trials: a leading axis of ``n`` on every leaf (the
-    batch of states the paths carry)."""
-    return jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (n,) + x.shape),
-                                  init_state(params, method))
 
 
 def hall_measurements(
@@ -389,45 +323,6 @@ class StepMoments(eqx.Module):
     F: Float[Array, "*T Nb Ny Nz"] | None = None
 
 
-def kalman_step_moments(params: Params, state: FilterState, inputs: FilterInput,
-                        method: str | AbstractModel) -> tuple[FilterState, Estimate,
-                                                              StepMoments]:
-    """``step`` of a Kalman model (``_models.AbstractKalman``: its ``moments`` and
-    ``estimate``), and its ``StepMoments``."""
-    model = model_of(method)
-    kept = state  # what a skipped update keeps
-    require_input(inputs, "step")
-    F = None
-    if isinstance(model, ExactKCKF):
-        z, P, y, S, F, nu, s, vb, dt = exact_parts(params, state, inputs)
-    elif isinstance(model, AbstractLinearKalman):
-        st = model.structure(params.robot)
-        dt, rates, noise, hb, rb, vb = block_inputs(params, st, state.gyro_hold, inputs)
-        z, P, y, S, nu, s = jax.vmap(lambda *a: block_step(st, *a, dt))(
-            state.z, state.P, rates, *noise, hb, rb, vb)
-    else:
-        raise _no_kernel(model)
-    gyro = inputs.gyro.astype(state.z.dtype)
-    hold = jnp.where(jnp.isfinite(gyro), gyro, state.gyro_hold)
-    # An update that is not finite (a time step so long that the prediction overflows) is
-    # skipped: the whole state stays as it was, so nothing can poison it.
-    ok = jnp.isfinite(z).all() & jnp.isfinite(P).all()
-    new = jax.tree_util.tree_map(lambda a, b: jnp.where(ok, a, b), FilterState(z, P, hold),
-                                 kept)
-    est = model_estimate(params.robot, model, new.z, new.P)
-    return new, dataclasses.replace(est, skipped=~ok), StepMoments(y, S, nu, s, vb & ok, dt,
-                                                                   ~ok, F)
-
-
-def model_estimate(robot, method: str | AbstractModel, z: BlockState, P: BlockCov
-                   ) -> Estimate:
-    """A Kalman model's ``Estimate`` of its block state ``z`` and covariance ``P``."""
-    model = model_of(method)
-    if isinstance(model, ExactKCKF):
-        return exact_block_estimate(robot, z, P)
-    return block_estimate(model.structure(robot), z, P)
-
-
 def exact_parts(params: Params, state: FilterState, inputs: FilterInput):
     """One ``kckf3d`` step (``_exact.exact_step``) laid out as one block (``Nb = 1``)."""
     dtype = state.z.dtype
@@ -444,100 +339,3 @@ def exact_parts(params: Params, state: FilterState, inputs: FilterInput):
 def exact_block_estimate(robot, z: BlockState, P: BlockCov) -> Estimate:
     """``kckf3d``'s estimate from its one-block state (``_exact.exact_estimate``)."""
     return Estimate(*_exact.exact_estimate(_exact.exact_model(robot), z[0], P[0]))
-
-
-def gyro_step(params: Params, state: FilterState, inputs: FilterInput,
-              model: AbstractModel):
-    """``Gyro``'s step: the joint and torso rates of the previous row integrated (Eq. 2)."""
-    require_input(inputs, "step")
-    plus, minus = params.robot.rate_pairs
-    rates = state.gyro_hold[plus] - state.gyro_hold[minus]
-    z = state.z + inputs.dt.astype(state.z.dtype) * rates
-    return _baseline_out(params, state, inputs, z, z)
-
-
-def hall_step(params: Params, state: FilterState, inputs: FilterInput,
-              model: AbstractModel):
-    """A Hall baseline's step (``AbstractHall``): its side's sensor of each joint axis
-    through Eq. 1, the last angle held where it has no reading."""
-    require_input(inputs, "step")
-    dtype = state.z.dtype
-    angle, _, valid = hall_measurements(params, inputs.hall_v.astype(dtype))
-    side = model.side
-    z = jnp.where(valid[side::2], angle[side::2], state.z)
-    K, J = params.robot.n_angles, params.robot.n_joint_axes
-    return _baseline_out(params, state, inputs, z,
-                         jnp.concatenate([z, jnp.full(K - J, jnp.nan, dtype)]))
-
-
-def _baseline_out(params, state, inputs, z, angles):
-    dtype = state.z.dtype
-    gyro = inputs.gyro.astype(dtype)
-    nan_k = jnp.full(params.robot.n_angles, jnp.nan, dtype)
-    hold = jnp.where(jnp.isfinite(gyro), gyro, state.gyro_hold)
-    return FilterState(z, state.P, hold), Estimate(angles, nan_k, nan_k, jnp.zeros((), bool))
-
-
-def step(
-    params: Params, state: FilterState, inputs: SensorSeries,
-    method: str | AbstractModel = "kckf"
-) -> tuple[FilterState, Estimate]:
-    """One time step of ``method`` (a model of ``_models`` or its name): predict from the
-    previous row, then update with this row.
-
-    Pure and jit-friendly (``method`` must be static). ``inputs`` is one row of a
-    ``FilterInput`` (``kk.prepare_row`` makes one of a lone row: a reading outside
-    ``params.limits`` is then missing); anything else is refused with a ``TypeError`` that
-    says so.
-    """
-    require_input(inputs, "step")
-    model = model_of(method)
-    if model.kalman:
-        return kalman_step_moments(params, state, inputs, model)[:2]
-    if isinstance(model, Gyro):
-        return gyro_step(params, state, inputs, model)
-    if isinstance(model, AbstractHall):
-        return hall_step(params, state, inputs, model)
-    raise _no_kernel(model)
-
-
-def exact_kinematics(method: str | AbstractModel) -> bool:
-    """Whether ``method`` models the chain's exact kinematics (``kckf3d``): then no two gyro
-    channels measure the same rate (``_screen.stand_ins``; ``AbstractModel.gyro_pairs``)."""
-    return not model_of(method).gyro_pairs
-
-
-def scan_filter(
-    params: Params, series: SensorSeries, method: str | AbstractModel = "kckf",
-    state: FilterState | None = None, remat_chunk: int | None = None,
-    innovations: bool = False,
-) -> tuple[FilterState, Estimate]:
-    """``lax.scan`` of ``step`` over one trial (not jitted: the building block of
-    ``run_filter`` and of the fitting loss).
-
-    ``remat_chunk``: split the scan into chunks of this many steps and recompute each chunk's
-    intermediate values in the backward pass (``jax.checkpoint``), so a gradient through
-    ``T`` steps stores about ``T / remat_chunk + remat_chunk`` states instead of all ``T``.
-    Either way each row's intermediate values are recomputed in the backward pass (only the
-    states are stored). The forward result is unchanged. ``innovations`` (a Kalman method):
-    the estimate also carries each row's fused Hall innovations (``Estimate.innovations``),
-    from the same steps.
-    """
-    check_method(method)
-    if state is None:
-        state = init_state(params, method)
-    require_input(series, "scan_filter")
-
-    def body(carry, row):
-        if innovations:
-            new, est, mom = kalman_step_moments(params, carry, row, method)
-            return new, dataclasses.replace(est, innovations=(mom.nu, mom.s, mom.valid))
-        return step(params, carry, row, method)
-
-    if not remat_chunk:
-        # Each row recomputed under reverse mode (only the carries saved), as on the lanes
-        # path: 3 trials x 4,000 recorded-like bench rows, float32, the RMSE gradient 0.28 ->
-        # 0.20 s (the same values to the bit; compile 6.7 -> 5.9 s).
-        return jax.lax.scan(jax.checkpoint(body), state, series)
-    # Padding rows (dt = 0, every reading missing) are no-op steps.
-    return chunked_scan(body, state, series, int(remat_chunk), (0.0, jnp.nan, jnp.nan))

@@ -30,9 +30,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from .._models._classes import AbstractModel, structure
+from .._models._classes import AbstractModel, init_states, structure
 from .._models._hall import hall_slope
-from .._models._kernel import SensorSeries, hall_measurements, init_states
+from .._models._kernel import SensorSeries, hall_measurements
 from .._models._params import Params
 from .._readings._prepare import prepare
 from .._readings._stats import chi2_quantile

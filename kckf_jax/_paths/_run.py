@@ -17,16 +17,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from .._models._classes import AbstractModel, method_name, model_of
+from .._models._classes import AbstractModel, init_state, init_states, method_name, model_of
 from .._models._fault_policy import FaultPolicy
-from .._models._kernel import (
-    Estimate,
-    FilterInput,
-    FilterState,
-    SensorSeries,
-    init_state,
-    init_states,
-)
+from .._models._kernel import Estimate, FilterInput, FilterState, SensorSeries
 from .._models._params import Params
 from .._readings._batching import pad_series
 from .._readings._gaps import GapPolicy

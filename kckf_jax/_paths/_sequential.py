@@ -8,7 +8,8 @@ from typing import ClassVar
 import equinox as eqx
 import jax
 
-from .._models._kernel import Estimate, FilterState, SensorSeries, scan_filter
+from .._models._classes import scan_filter
+from .._models._kernel import Estimate, FilterState, SensorSeries
 from .._models._params import Params
 from .._readings._prepare import prepare
 from ._base import AbstractPath, PathCost

@@ -25,18 +25,18 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from .._models._classes import AbstractModel, method_name, model_of, structure
-from .._models._kernel import (
+from .._models._classes import (
     KALMAN_METHODS,
-    Estimate,
-    FilterState,
-    SensorSeries,
-    StepMoments,
+    AbstractModel,
     init_state,
     init_states,
     kalman_step_moments,
+    method_name,
     model_estimate,
+    model_of,
+    structure,
 )
+from .._models._kernel import Estimate, FilterState, SensorSeries, StepMoments
 from .._models._params import Params
 from .._readings._prepare import prepare
 from . import AbstractPath, SmootherLayout, as_path, is_traced

@@ -26,7 +26,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from .._models._blocks import Structure
-from .._models._classes import model_of, structure
+from .._models._classes import init_state, model_of, structure
 from .._models._kernel import (
     BlockInputs,
     Estimate,
@@ -35,7 +35,6 @@ from .._models._kernel import (
     SensorSeries,
     block_estimate,
     block_update,
-    init_state,
 )
 from .._models._params import Params
 from .._readings._prepare import prepare

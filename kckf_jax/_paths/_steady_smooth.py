@@ -26,8 +26,8 @@ import numpy as np
 from jaxtyping import Array, Bool, Float
 
 from .._models._blocks import predicted_moments
-from .._models._classes import structure
-from .._models._kernel import FilterInput, FilterState, SensorSeries, block_estimate, init_state
+from .._models._classes import init_state, structure
+from .._models._kernel import FilterInput, FilterState, SensorSeries, block_estimate
 from .._models._params import Params
 from .._readings._prepare import prepare
 from ._affine import output_map, reading_maps, series_inputs, step_maps

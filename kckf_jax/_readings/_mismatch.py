@@ -22,9 +22,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .._models._classes import AbstractModel
+from .._models._classes import AbstractModel, exact_kinematics
 from .._models._hall import DEG, hall_angle_np
-from .._models._kernel import exact_kinematics
 from .._models._robot import AXES
 from .._models._rotations import joint_rotation
 from ._screen import screen

@@ -24,9 +24,9 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
-from .._models._classes import AbstractModel
+from .._models._classes import AbstractModel, exact_kinematics
 from .._models._effects import corrected_readings, timed_hold
-from .._models._kernel import FilterInput, FilterState, SensorSeries, exact_kinematics
+from .._models._kernel import FilterInput, FilterState, SensorSeries
 from .._models._params import Params
 from ._health import screened_series
 from ._screen import screen

@@ -15,8 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._models._classes import AbstractModel, method_name
-from .._models._kernel import estimated, init_state
+from .._models._classes import AbstractModel, estimated, init_state, method_name
 from .._models._params import Params, get_leaf, leaf_names
 from .._readings._gaps import GapPolicy
 from .._readings._health import init_health

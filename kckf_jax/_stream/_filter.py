@@ -10,16 +10,17 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._models._classes import AbstractModel, method_name, structure
-from .._models._hall import hall_exponentials
-from .._models._kernel import (
-    FilterState,
-    SensorSeries,
+from .._models._classes import (
+    AbstractModel,
     estimated,
     exact_kinematics,
     init_state,
+    method_name,
     step,
+    structure,
 )
+from .._models._hall import hall_exponentials
+from .._models._kernel import FilterState, SensorSeries
 from .._models._params import Params
 from .._paths import STEP_TOL_S, Steady, converged_map, readings_present, relative_change
 from .._readings._gaps import GapPolicy

@@ -66,7 +66,7 @@ def _warn(args, lines: Sequence[str]) -> None:
 
 
 def _check_methods(methods: Sequence[str]) -> list[str]:
-    from .._models._kernel import METHODS
+    from .._models._classes import METHODS
 
     for m in methods:
         if m not in METHODS:

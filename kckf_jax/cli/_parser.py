@@ -100,8 +100,8 @@ def build_parser(commands: Mapping[str, Callable], demo_steps: int) -> argparse.
     """The ``kckf`` parser; ``commands`` maps each ``cmd_*`` name to its function (those of
     ``cli/__init__.py``)."""
     from .._fitting._fit import LOSSES
+    from .._models._classes import KALMAN_METHODS, METHODS
     from .._models._effects import EFFECTS as LEARNABLE
-    from .._models._kernel import KALMAN_METHODS, METHODS
     from .._models._params import ALL_LEAVES, HALL_NOISE_MODELS
     from .._sessions._sim_faults import FAULT_KINDS
     from .._sessions._simulate import EFFECTS as SIM_EFFECTS

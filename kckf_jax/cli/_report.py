@@ -15,9 +15,8 @@ import numpy as np
 
 from .._analysis._diagnostics import consistency_figures, diagnostics, session_innovations
 from .._analysis._metrics import rmse_table
-from .._models._classes import MODELS, model_of
+from .._models._classes import MODELS, exact_kinematics, model_of
 from .._models._fault_policy import FaultPolicy
-from .._models._kernel import exact_kinematics
 from .._models._params import Params
 from .._paths import AbstractPath
 from .._paths._run import filter_sessions, series_faults, session_params, session_series
