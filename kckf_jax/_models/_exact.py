@@ -20,8 +20,10 @@ kinematics (``_rotations``; docs/kinematics.md).
   chain's of theirs, so no separate torso bias is left for the constraint to tie (as the
   linear KCKF's ``b_phi = sum b``).
 
-Each step linearises the model at the filtered state (``jax.jacfwd`` of each joint's rates in
-its coordinates and its two links' gyros; none written by hand); nothing is left to iterate:
+Each step linearises the model at the filtered state (each joint's rates' Jacobians in its
+coordinates and its two links' gyros, and the torso's in the joints', written from the
+rotations' closed forms: ``jax.jacfwd`` through every rotation cost several times the chain's
+own arithmetic, issue 35; the tests hold them to ``jacfwd``'s); nothing is left to iterate:
 the Hall readings measure ``theta`` linearly (one scalar Joseph update per joint coordinate,
 as the linear KCKF) and the constraint is eliminated, not approximated. To first order in the
 angles and rates the model is the paper's.
@@ -44,7 +46,6 @@ from __future__ import annotations
 import dataclasses
 import functools
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float
@@ -52,7 +53,14 @@ from jaxtyping import Array, Bool, Float
 from ._blocks import ProcessNoise
 from ._kalman import coordinate_update, symmetrise
 from ._robot import AXES, Robot
-from ._rotations import chain_rotation, euler_xyz, joint_jacobian, joint_rotation
+from ._rotations import (
+    chain_rotation,
+    chain_rotation_axes,
+    euler_xyz,
+    euler_xyz_jacobian,
+    joint_jacobian,
+    joint_rotation,
+)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -160,28 +168,91 @@ def torso_angles(model: ExactModel, theta: Float[Array, " J"]) -> Float[Array, "
     return jnp.stack([phi[i] for i in model.torso_axes])
 
 
+def torso_angles_jacobian(model: ExactModel, theta: Float[Array, " J"]
+                          ) -> tuple[Float[Array, " P"], Float[Array, "P J"]]:
+    """``torso_angles`` (the same values) and their Jacobian ``C = d phi / d theta`` from the
+    closed forms: each coordinate's axis in link 1's frame (``chain_rotation_axes``: the
+    product rule over the chain) through the Euler angles' derivative in the rotation's
+    entries (``euler_xyz_jacobian``)."""
+    angles = [theta[sl[0]:sl[-1] + 1] for sl in model.joint_slices]
+    R, S = chain_rotation_axes(model.robot.joints, angles, jnp)
+    phi, dphi = euler_xyz(R, jnp), euler_xyz_jacobian(R, S, jnp)
+    return (jnp.stack([phi[i] for i in model.torso_axes]),
+            jnp.stack([dphi[i] for i in model.torso_axes]))
+
+
+def joint_rate_jacobians(axes, angles: Float[Array, " m"], g_parent: Float[Array, " 3"],
+                         g_child: Float[Array, " 3"]
+                         ) -> tuple[Float[Array, " m"], Float[Array, "m m"], Float[Array, "m 6"]]:
+    """One joint's coordinate rates ``u = J^+ r``, ``r = g_child - R^T g_parent``, and their
+    Jacobians in its coordinates and in ``[g_parent, g_child]``, from the rotations' closed
+    forms (no ``jacfwd``). With ``v = R^T g_parent`` and ``j_k`` the columns of ``J``:
+
+    * ``dR / dtheta_k = R hat(j_k)``, so ``dr / dtheta_k = j_k x v``;
+    * column ``l`` of ``dJ / dtheta_k`` is ``j_l x j_k`` for ``l < k`` (the rotations after
+      axis ``l`` include ``k``'s), 0 otherwise, so ``dJ/dtheta_k u = w_k x j_k`` with ``w_k =
+      sum_{l<k} u_l j_l``;
+    * ``du / dtheta_k = J^+ (dr - dJ u) + (J'J)^-1 dJ' (r - J u)`` (the left inverse's
+      derivative; the last term is 0 for three axes, where ``r = J u``), and
+      ``J^+ (dr - dJ u) = J^+ (j_k x (v + w_k))``;
+    * ``du / dg_parent = -J^+ R^T``, ``du / dg_child = J^+``.
+
+    A one-axis joint: ``u = g_child,a - g_parent,a`` (``R e_a = e_a``), independent of its
+    angle."""
+    m = len(axes)
+    dtype = angles.dtype
+    if m == 1:
+        e = np.zeros((1, 3))
+        e[0, AXES.index(axes[0])] = 1.0
+        e = jnp.asarray(e, dtype)
+        return ((g_child - g_parent)[AXES.index(axes[0])][None], jnp.zeros((1, 1), dtype),
+                jnp.concatenate([-e, e], axis=1))
+    R = joint_rotation(axes, angles, jnp)
+    Jm = joint_jacobian(axes, angles, jnp)
+    cols = [Jm[:, k] for k in range(m)]
+    if m == 3:  # J^-1: the adjugate's rows over the determinant
+        c0, c1, c2 = cols
+        adj = jnp.stack([jnp.cross(c1, c2), jnp.cross(c2, c0), jnp.cross(c0, c1)])
+        Jp = adj / jnp.dot(c0, adj[0])
+        Minv = None
+    elif m == 2:  # (J'J)^-1 J' (J'J is the identity in exact arithmetic: orthogonal axes)
+        M = Jm.T @ Jm
+        Minv = jnp.stack([jnp.stack([M[1, 1], -M[0, 1]]), jnp.stack([-M[1, 0], M[0, 0]])]) / (
+            M[0, 0] * M[1, 1] - M[0, 1] * M[1, 0])
+        Jp = Minv @ Jm.T
+    else:
+        raise ValueError(f"a joint has 1, 2 or 3 axes, got {axes!r}")
+    v = R.T @ g_parent
+    r = g_child - v
+    u = Jp @ r
+    w, T = v, []
+    for k in range(m):
+        if k:
+            w = w + u[k - 1] * cols[k - 1]
+        T.append(jnp.cross(cols[k], w))
+    Du = Jp @ jnp.stack(T, axis=1)
+    if Minv is not None:  # the least-squares residual's term: dJ/dtheta_2 = [j_1 x j_2, 0]
+        resid = jnp.dot(jnp.cross(cols[0], cols[1]), r - Jm @ u)
+        Du = Du + jnp.concatenate([jnp.zeros((2, 1), dtype), Minv[:, :1] * resid], axis=1)
+    return u, Du, jnp.concatenate([-Jp @ R.T, Jp], axis=1)
+
+
 def joint_rates_jacobian(model: ExactModel, theta: Float[Array, " J"], gyro: Float[Array, " G"]
                          ) -> tuple[Float[Array, " J"], Float[Array, "J J"], Float[Array, "J G"]]:
     """The joint coordinates' rates the (bias-free) gyro rates ``gyro`` give, ``u_i = J_i^+
     (g_{i+1} - R_i^T g_i)`` per joint, and their Jacobians in ``theta`` and in ``gyro``,
-    joint by joint (``jacfwd`` over a joint's own coordinates and its two links' gyros: 64
-    trials 2.2x faster than over all of ``theta``; a one-axis joint's rate does not depend on
-    its angle)."""
+    joint by joint from the rotations' closed forms (``joint_rate_jacobians``; ``jacfwd``
+    through the rotations cost about 10x the chain's own arithmetic, issue 35): block
+    diagonal in ``theta`` (a one-axis joint's rate does not depend on its angle), each joint
+    reading its two links' gyros."""
     g = gyro.reshape(-1, 3)
     dtype = theta.dtype
     us, d_theta, d_gyro = [], [], []
     for i, (axes, sl) in enumerate(zip(model.robot.joints, model.joint_slices, strict=True)):
-        m = len(axes)
-        th = theta[sl[0]:sl[-1] + 1]
-
-        def f(v, i=i, axes=axes, m=m):
-            return coordinate_rates(axes, v[:m], v[m + 3:] - joint_rotation(axes, v[:m], jnp).T
-                                    @ v[m:m + 3])
-
-        u, D = _with_jacobian(f, jnp.concatenate([th, g[i], g[i + 1]]))
+        u, Du, Dg = joint_rate_jacobians(axes, theta[sl[0]:sl[-1] + 1], g[i], g[i + 1])
         us.append(u)
-        d_theta.append(D[:, :m] if m > 1 else jnp.zeros((1, 1), dtype))
-        d_gyro.append(D[:, m:])
+        d_theta.append(Du)
+        d_gyro.append(Dg)
     # Block matrices by concatenation (an indexed update inside the step's loop is a
     # scatter, which keeps XLA's CPU compiler from making the loop one kernel).
     sizes = [d.shape[0] for d in d_theta]
@@ -192,12 +263,6 @@ def joint_rates_jacobian(model: ExactModel, theta: Float[Array, " J"], gyro: Flo
                                            jnp.zeros((sizes[i], 3 * (n - 1 - i)), dtype)],
                                           axis=1) for i in range(n)])
     return jnp.concatenate(us), Du, Dg
-
-
-def _with_jacobian(f, x):
-    """``f(x)`` and its Jacobian (``jacfwd``, one pass)."""
-    jac, value = jax.jacfwd(lambda v: (f(v), f(v)), has_aux=True)(x)
-    return value, jac
 
 
 def gyro_bias_noise(model: ExactModel, q, bias_rw, p0_bias):
@@ -215,7 +280,7 @@ def predicted_moments(model: ExactModel, z: Float[Array, " Nz"], P: Float[Array,
     """The predicted ``y = z' = [theta', beta']``, its covariance ``S`` and its Jacobian ``F``
     in the filtered ``z`` (the smoother's): ``theta' = theta + dt u(theta, g - beta) +
     w_theta`` (``u``: ``joint_rates_jacobian``), ``beta' = beta + w_beta``; the model
-    linearised at the filtered state (``jacfwd``). ``noise``: Eq. 13's terms per angle
+    linearised at the filtered state (``joint_rates_jacobian``). ``noise``: Eq. 13's terms per angle
     coordinate (the joints' angle variance); ``bias_q``, ``bias_rw2``: each bias channel's
     (``gyro_bias_noise``)."""
     J = model.J
@@ -259,12 +324,12 @@ def exact_estimate(model: ExactModel, z: Float[Array, " Nz"], P: Float[Array, "N
     those for the torso)."""
     J = model.J
     theta = z[:J]
-    C = jax.jacfwd(lambda th: torso_angles(model, th))(theta)  # (P, J)
+    phi, C = torso_angles_jacobian(model, theta)  # C: (P, J)
     Ptt = P[:J, :J]
     var = jnp.concatenate([jnp.diag(Ptt), jnp.sum((C @ Ptt) * C, axis=1)])
     _, _, Dg = joint_rates_jacobian(model, theta, jnp.zeros(model.G, z.dtype))
     rate_bias = Dg @ (jnp.asarray(model.select, z.dtype) @ z[J:])
-    return (jnp.concatenate([theta, torso_angles(model, theta)]),
+    return (jnp.concatenate([theta, phi]),
             jnp.sqrt(jnp.maximum(var, 0.0)), jnp.concatenate([rate_bias, C @ rate_bias]))
 
 

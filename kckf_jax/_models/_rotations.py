@@ -105,3 +105,54 @@ def euler_body_rates(angles, rates, xp=np):
     """The body rate ``(..., 3)`` of an orientation given as intrinsic x-y-z Euler angles and
     their rates: a joint ``xyz``'s Jacobian applied to the rates."""
     return xp.einsum("...ik,...k->...i", joint_jacobian(("x", "y", "z"), angles, xp), rates)
+
+
+def chain_rotation_axes(joints: Sequence[Sequence[str]], angles: Sequence, xp=np):
+    """``chain_rotation`` (the same products in the same order, so the same values) and each
+    joint coordinate's axis in link 1's frame, ``(..., 3, J)`` (joints in order, a joint's axes
+    in order): coordinate ``k``'s axis ``s_k`` is its own axis turned by every rotation before
+    it, ``R_1 ... R_{k-1} e_{a_k}``, so turning it by ``dtheta_k`` turns the chain by
+    ``dR = hat(s_k) R dtheta_k`` (the product rule: ``R_{<k} hat(e) R_k R_{>k}``, and
+    ``R_{<k} hat(e) R_{<k}^T = hat(R_{<k} e)``)."""
+    R, cols = None, []
+    for axes, th in zip(joints, angles, strict=True):
+        Q = None  # the joint's rotations before this axis (joint_rotation's partial products)
+        for k, a in enumerate(axes):
+            col = AXES.index(a)
+            if Q is None and R is None:
+                e = np.zeros(3)
+                e[col] = 1.0
+                s = xp.broadcast_to(xp.asarray(e, dtype=th.dtype), th.shape[:-1] + (3,))
+            elif Q is None:
+                s = R[..., :, col]
+            elif R is None:
+                s = Q[..., :, col]
+            else:
+                s = xp.einsum("...ij,...j->...i", R, Q[..., :, col])
+            cols.append(s)
+            R_k = axis_rotation(a, th[..., k], xp)
+            Q = R_k if Q is None else Q @ R_k
+        R = Q if R is None else R @ Q
+    return R, xp.stack(cols, axis=-1)
+
+
+def euler_xyz_jacobian(R, S, xp=np):
+    """The derivative ``(..., 3, K)`` of ``euler_xyz(R)`` when ``R`` turns by ``hat(s_k) R
+    dtheta_k`` (``S``: the axes ``s_k``, ``(..., 3, K)``, in ``R``'s outer frame; e.g.
+    ``chain_rotation_axes``): the five entries ``euler_xyz`` reads, differentiated
+    (``(hat(s) R)_ij = (s x R_j)_i``), through its ``arctan2`` and ``arcsin``. Singular where
+    ``euler_xyz`` is (``|b| = pi/2``)."""
+    s0, s1, s2 = S[..., 0, :], S[..., 1, :], S[..., 2, :]
+
+    def r(i, j):
+        return R[..., i, j][..., None]
+
+    d02 = s1 * r(2, 2) - s2 * r(1, 2)
+    d12 = s2 * r(0, 2) - s0 * r(2, 2)
+    d22 = s0 * r(1, 2) - s1 * r(0, 2)
+    d00 = s1 * r(2, 0) - s2 * r(1, 0)
+    d01 = s1 * r(2, 1) - s2 * r(1, 1)
+    da = (r(1, 2) * d22 - r(2, 2) * d12) / (r(1, 2) ** 2 + r(2, 2) ** 2)
+    db = d02 / xp.sqrt(1.0 - xp.clip(r(0, 2), -1.0, 1.0) ** 2)
+    dc = (r(0, 1) * d00 - r(0, 0) * d01) / (r(0, 1) ** 2 + r(0, 0) ** 2)
+    return xp.stack([da, db, dc], axis=-2)
