@@ -34,8 +34,29 @@ def test_the_pass_innovations_are_the_second_pass(method):
     assert plain.innovations is None
 
 
+def test_the_lanes_pass_gives_them_too():
+    """Three sessions of uneven length as one lanes batch: each session's innovations from the
+    lanes scan equal the second pass's, and the estimates those of the lanes run without
+    them."""
+    sessions = [kk.simulate("x,y,x,y", "cyclic", k, d, drop_prob=0.01)
+                for k, d in ((1, 6.0), (2, 8.0), (3, 7.0))]
+    plain = kk.filter_sessions(sessions, "kckf", path="lanes", dtype=np.float64)
+    est = kk.filter_sessions(sessions, "kckf", path="lanes", dtype=np.float64,
+                             innovations=True)
+    params = kk.Params.paper_defaults(sessions[0].robot, sessions[0].hall_models,
+                                      dtype=np.float64)
+    want = session_innovations(sessions, "kckf", params)
+    for e, p, w in zip(est, plain, want):
+        assert e.path == p.path == "lanes"
+        np.testing.assert_allclose(e.angles, p.angles, rtol=0, atol=1e-12)
+        for got, ref in zip(e.innovations, w):
+            np.testing.assert_allclose(np.asarray(got, np.float64), ref, rtol=1e-10,
+                                       atol=1e-10)
+
+
 def test_a_baseline_or_a_path_without_them_carries_none():
     s = kk.simulate("x,y", "cyclic", 1, 4.0)
     assert kk.filter_sessions([s], "hall_l", innovations=True)[0].innovations is None
-    est = kk.filter_sessions([s], "kckf", path="lanes", innovations=True)[0]
-    assert est.path == "lanes" and est.innovations is None
+    regular = kk.simulate("x,y", "cyclic", 1, 50.0, config=kk.SimConfig(timestamp_jitter_s=0.0))
+    est = kk.filter_sessions([regular], "kckf", path="steady", innovations=True)[0]
+    assert est.path == "steady" and est.innovations is None

@@ -114,6 +114,18 @@ class LaneInnovations(NamedTuple):
     valid: Bool[Array, "T m Nb B"]
 
 
+class LaneRowsInnovations(NamedTuple):
+    """Per row, ``LaneRows``' fields and ``LaneInnovations``' (``lane_scan_innovations``:
+    the estimates and the diagnostics' innovations from one pass, as ``kckf evaluate`` asks)."""
+
+    z: Float[Array, "T Nz Nb B"]
+    P: Float[Array, "T X Nb B"]
+    skipped: Bool[Array, "T B"]
+    nu: Float[Array, "T m Nb B"]
+    s: Float[Array, "T m Nb B"]
+    valid: Bool[Array, "T m Nb B"]
+
+
 class LaneMoments(NamedTuple):
     """Per row, the smoother's terms (``lane_moments_scan``): ``LaneRows``' fields and the
     predicted moments of ``y = [z, e]`` before the row's updates (``T Ny Nb B``, and the upper
@@ -150,6 +162,14 @@ def lane_innovations_scan(params: Params, st: Structure, start: LaneState, input
     return _lane_loop(params, st, start, inputs, LaneInnovations, remat_chunk, None)
 
 
+def lane_scan_innovations(params: Params, st: Structure, start: LaneState, inputs: LaneInputs
+                          ) -> LaneRun:
+    """``lane_scan`` and ``lane_innovations_scan`` in one pass (no reverse pass written for
+    it: the filter's estimates with their innovations, not a loss): ``LaneRun`` with
+    ``LaneRowsInnovations``."""
+    return _lane_loop(params, st, start, inputs, LaneRowsInnovations, None, None)
+
+
 def lane_moments_scan(params: Params, st: Structure, start: LaneState, inputs: LaneInputs
                       ) -> LaneRun:
     """The filter with each row's predicted moments (the smoother's forward pass): ``LaneRun``
@@ -164,6 +184,8 @@ def _kept(keep: type, step, x_new, fin, vb):
         return LaneInnovations(step.nu, step.s, vb & fin)
     if keep is LaneMoments:
         return LaneMoments(x_new[:nz], x_new[nz:], ~fin, step.y, step.S)
+    if keep is LaneRowsInnovations:
+        return LaneRowsInnovations(x_new[:nz], x_new[nz:], ~fin, step.nu, step.s, vb & fin)
     return LaneRows(x_new[:nz], x_new[nz:], ~fin)
 
 
@@ -233,7 +255,7 @@ def _lane_loop(params: Params, st: Structure, start: LaneState, inputs: LaneInpu
         # No-op rows pad the last chunk: no time step, every reading missing.
         final, out = chunked_scan(body, carry, rows, remat_chunk,
                                   jax.tree_util.tree_leaves(NO_OP_INPUTS))
-    elif keep is LaneMoments or snapshot_row is not None:
+    elif keep in (LaneMoments, LaneRowsInnovations) or snapshot_row is not None:
         # Each row recomputed under reverse mode (only the carries saved): the transposed
         # body then runs as one piece (64 x 10,000 bench, float32: gradient 3.7 -> 3.0 s).
         final, out = jax.lax.scan(jax.checkpoint(body), carry, rows)
@@ -340,3 +362,23 @@ class Lanes(AbstractPath):
         angles, std, bias = lane_estimates(st, run.rows.z, run.rows.P)
         return FilterState(*run.final), Estimate(angles, std, bias,
                                                  jnp.moveaxis(run.rows.skipped, 0, 1))
+
+    innovations_in_pass: ClassVar[bool] = True
+
+    def run_innovations(self, params: Params, series: SensorSeries, method: str,
+                        state: FilterState) -> tuple[FilterState, Estimate]:
+        """``run``, the estimate carrying each row's fused Hall innovations from the same
+        scan (``Estimate.innovations``: ``(nu, s, valid)``, ``B T Nb m`` as the sequential
+        path gives them)."""
+        st = structure(params.robot, method)
+        dtype = state.z.dtype
+        series = prepare(params, series, method, dtype)
+        run = lane_scan_innovations(params, st, LaneState(state.z, state.P, state.gyro_hold),
+                                    lane_inputs(params, st, series.dt, series.gyro,
+                                                series.hall_v))
+        rows = run.rows
+        angles, std, bias = lane_estimates(st, rows.z, rows.P)
+        lanes_last = tuple(jnp.transpose(x, (3, 0, 2, 1)) for x in (rows.nu, rows.s, rows.valid))
+        return FilterState(*run.final), Estimate(angles, std, bias,
+                                                 jnp.moveaxis(rows.skipped, 0, 1),
+                                                 innovations=lanes_last)
