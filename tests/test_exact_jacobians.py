@@ -59,13 +59,14 @@ def reference_joint_rates_jacobian(model, theta, gyro):
         us.append(u)
         d_theta.append(D[:, :m] if m > 1 else jnp.zeros((1, 1), dtype))
         d_gyro.append(D[:, m:])
-    sizes = [d.shape[0] for d in d_theta]
-    n = len(sizes)
-    Du = jnp.block([[d_theta[i] if i == k else jnp.zeros((sizes[i], sizes[k]), dtype)
-                     for k in range(n)] for i in range(n)])
-    Dg = jnp.concatenate([jnp.concatenate([jnp.zeros((sizes[i], 3 * i), dtype), d_gyro[i],
-                                           jnp.zeros((sizes[i], 3 * (n - 1 - i)), dtype)],
-                                          axis=1) for i in range(n)])
+    # Assembled independently of the module's concatenations: a block diagonal, and each
+    # joint's rows written at its two links' gyro columns.
+    Du = jax.scipy.linalg.block_diag(*d_theta)
+    Dg = jnp.zeros((Du.shape[0], g.size), dtype)
+    row = 0
+    for i, d in enumerate(d_gyro):
+        Dg = Dg.at[row:row + d.shape[0], 3 * i:3 * i + 6].set(d)
+        row += d.shape[0]
     return jnp.concatenate(us), Du, Dg
 
 
