@@ -54,6 +54,21 @@ def test_the_lanes_pass_gives_them_too():
                                        atol=1e-10)
 
 
+def test_the_segments_pass_gives_them_too():
+    """A long recording on the segments path (cut into warmed-up segments run as lanes): the
+    innovations of the pass that passed its check equal the second pass's."""
+    s = kk.simulate("x,y", "cyclic", 2, 200.0, drop_prob=0.01)
+    path = kk.Segments(lanes=4, min_segments=2)  # float64: two segments, 8,192 rows warm-up
+    plain = kk.filter_sessions([s], "kckf", path=path, dtype=np.float64)[0]
+    est = kk.filter_sessions([s], "kckf", path=path, dtype=np.float64, innovations=True)[0]
+    assert est.path == plain.path == "segments"
+    np.testing.assert_allclose(est.angles, plain.angles, rtol=0, atol=1e-12)
+    params = kk.Params.paper_defaults(s.robot, s.hall_models, dtype=np.float64)
+    want = session_innovations([s], "kckf", params)[0]
+    for got, ref in zip(est.innovations, want):
+        np.testing.assert_allclose(np.asarray(got, np.float64), ref, rtol=1e-9, atol=1e-9)
+
+
 def test_a_baseline_or_a_path_without_them_carries_none():
     s = kk.simulate("x,y", "cyclic", 1, 4.0)
     assert kk.filter_sessions([s], "hall_l", innovations=True)[0].innovations is None

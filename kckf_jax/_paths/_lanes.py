@@ -162,12 +162,12 @@ def lane_innovations_scan(params: Params, st: Structure, start: LaneState, input
     return _lane_loop(params, st, start, inputs, LaneInnovations, remat_chunk, None)
 
 
-def lane_scan_innovations(params: Params, st: Structure, start: LaneState, inputs: LaneInputs
-                          ) -> LaneRun:
+def lane_scan_innovations(params: Params, st: Structure, start: LaneState, inputs: LaneInputs,
+                          snapshot_row: int | None = None) -> LaneRun:
     """``lane_scan`` and ``lane_innovations_scan`` in one pass (no reverse pass written for
     it: the filter's estimates with their innovations, not a loss): ``LaneRun`` with
-    ``LaneRowsInnovations``."""
-    return _lane_loop(params, st, start, inputs, LaneRowsInnovations, None, None)
+    ``LaneRowsInnovations``. ``snapshot_row``: as ``lane_scan``'s."""
+    return _lane_loop(params, st, start, inputs, LaneRowsInnovations, None, snapshot_row)
 
 
 def lane_moments_scan(params: Params, st: Structure, start: LaneState, inputs: LaneInputs

@@ -43,7 +43,16 @@ from .._models._kernel import Estimate, FilterState, SensorSeries
 from .._models._params import Params
 from .._readings._prepare import prepare
 from ._base import AbstractPath, PathCost, PathRun, is_traced, kalman_only
-from ._lanes import NO_OP_INPUTS, LaneRows, LaneState, lane_estimates, lane_inputs, lane_scan
+from ._lanes import (
+    NO_OP_INPUTS,
+    LaneRows,
+    LaneRowsInnovations,
+    LaneState,
+    lane_estimates,
+    lane_inputs,
+    lane_scan,
+    lane_scan_innovations,
+)
 from ._sequential import Sequential
 
 
@@ -122,6 +131,9 @@ class Segments(AbstractPath):
                         "the sequential path")
         return None
 
+    #: From the host, its passes keep the innovations too (``compute``).
+    innovations_in_pass: ClassVar[bool] = True
+
     def cost(self, n_trials: int, n_rows: int) -> PathCost:
         """Compile 3.0 s (the first pass; a repair compiles another); 0.7 us a row: fitted to
         ``benchmarks/one_shot.py``, as ``Sequential.cost``."""
@@ -139,13 +151,15 @@ class Segments(AbstractPath):
         program of its own (a recording whose check passes compiles no repair; a failed one
         compiles one and runs it up to ``repairs`` times), then, where they fail too, the
         sequential path (``PathRun.path`` says which ran). Under a caller's trace: ``run``.
-        No innovations in its pass (``innovations`` is taken and left: the estimate carries
-        none), except where it falls back on the sequential path."""
+        ``innovations``: each pass's scan also keeps the fused Hall innovations
+        (``lane_scan_innovations``), so the estimate carries them from the pass that passed
+        the check (or from the sequential path's); none under a caller's trace."""
         if is_traced(params, series, state):
             return super().compute(params, series, method, state)
         last = None
         for _ in range(self.repairs + 1):
-            final, est, last = _one_pass(self, params, series, method, state, last)
+            final, est, last = _one_pass(self, params, series, method, state, last,
+                                         innovations)
             if bool(last.ok):
                 return PathRun(final, est, self)
         return Sequential().compute(params, series, method, state, innovations)
@@ -167,15 +181,18 @@ class Segments(AbstractPath):
         return self._result(params, series, method, state, last) + (last.ok,)
 
     def _run_pass(self, params: Params, series: SensorSeries, method: str, state: FilterState,
-                 last: SegmentPass | None = None) -> tuple[FilterState, Estimate, SegmentPass]:
+                 last: SegmentPass | None = None, innovations: bool = False
+                 ) -> tuple[FilterState, Estimate, SegmentPass]:
         """One pass over the segments: the first (``last`` is ``None``: every segment warmed
         up from the entering state) or a repair (every segment's own rows again, entering
         where the one before it ended in ``last``: the first enters as before). A segment
         whose predecessor was right is now right; if every segment ends where it ended in
         ``last``, every one entered where the sequential filter was. Returns the pass's final
         state and estimates, and the ``SegmentPass`` a repair would start from, its check in
-        ``ok``."""
+        ``ok``. ``innovations``: the estimates carry each row's fused Hall innovations from
+        the same scan."""
         st = structure(params.robot, method)
+        scan = lane_scan_innovations if innovations else lane_scan
         dtype = state.z.dtype
         series = prepare(params, series, method, dtype)
         B, T, S, W, L = self._layout(series, dtype)
@@ -201,13 +218,13 @@ class Segments(AbstractPath):
                     return jnp.concatenate([w, x])
 
                 inputs = jax.tree_util.tree_map(warm, own, NO_OP_INPUTS)
-            run = lane_scan(params, st, start, inputs, snapshot_row=W)
+            run = scan(params, st, start, inputs, snapshot_row=W)
             rows_out = jax.tree_util.tree_map(lambda x: x[W:], run.rows)
             entered = run.snapshot
         else:
             entered = LaneState(*(jnp.where(_lanes_first(first, e), e, jnp.roll(x, 1, axis=0))
                                   for e, x in zip(last.entered, last.ended)))
-            run = lane_scan(params, st, entered, own)
+            run = scan(params, st, entered, own)
             rows_out = run.rows
         this = SegmentPass(run.final, entered, rows_out,
                            segment_check(entered, run.final, B, S, self.atol(dtype)))
@@ -230,14 +247,18 @@ class Segments(AbstractPath):
         def trials(x):  # (B * S, L, ...) -> (B, T, ...)
             return x.reshape((B, S * L) + x.shape[2:])[:, :T]
 
+        innovations = None
+        if isinstance(this.rows, LaneRowsInnovations):  # lanes last -> (lanes, L, Nb, m)
+            innovations = tuple(trials(jnp.transpose(x, (3, 0, 2, 1)))
+                                for x in (this.rows.nu, this.rows.s, this.rows.valid))
         est = Estimate(trials(angles), trials(std), trials(bias),
-                       trials(jnp.moveaxis(this.rows.skipped, 0, 1)))
+                       trials(jnp.moveaxis(this.rows.skipped, 0, 1)), innovations=innovations)
         return FilterState(*(_split(x, B, S)[:, -1] for x in this.ended)), est
 
 
 @eqx.filter_jit
-def _one_pass(path: Segments, params, series, method, state, last):
-    final, est, this = path._run_pass(params, series, method, state, last)
+def _one_pass(path: Segments, params, series, method, state, last, innovations=False):
+    final, est, this = path._run_pass(params, series, method, state, last, innovations)
     return final, est, this._replace(rows=None)
 
 
@@ -248,15 +269,16 @@ class SegmentPass(NamedTuple):
     Attributes:
         ended: every lane's state after its own rows (lanes first).
         entered: every lane's state entering its own rows.
-        rows: per row what the estimates are read from (``lane_scan``'s), or ``None`` where
-            a caller no longer needs them.
+        rows: per row what the estimates are read from (``lane_scan``'s; with the
+            innovations, ``lane_scan_innovations``'), or ``None`` where a caller no longer
+            needs them.
         ok: whether every segment entered where the one before it ended
             (``segment_check``).
     """
 
     ended: LaneState
     entered: LaneState
-    rows: LaneRows | None
+    rows: LaneRows | LaneRowsInnovations | None
     ok: Bool[Array, ""]
 
 
