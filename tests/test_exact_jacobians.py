@@ -227,6 +227,7 @@ def _recordings():
     return out
 
 
+@pytest.mark.long  # six kckf3d compiles, and the compiled programs cleared twice
 def test_filter_estimates_unchanged(request):
     """``kckf3d`` on three robots (one with a two-axis joint, one of three-axis joints on
     exact walking), float64: the closed forms' estimates are the ``jacfwd`` ones to 1e-10."""
