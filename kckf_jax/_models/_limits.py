@@ -3,8 +3,8 @@
 A Hall voltage outside what its ADC can read, or a gyro rate beyond any sensor's range, cannot
 have been measured: it is a transmission or logging fault (a byte error, a wrong unit, an
 uninitialised buffer). The filter treats such a reading as missing, the same way in the batch
-filter, the stream and the exported step (``_readings._prepare`` masks it before the step), and the edges that read
-data (sessions, packets) count and name them.
+filter, the stream and the exported step (``_readings._prepare`` masks it before the step),
+and the edges that read data (sessions, packets) count and name them.
 
 Inside the range, three more kinds of reading are not measurements (``_screen`` decides, the
 kernel's ``step`` applies it): a Hall reading *at* either end of its ADC's range (``railed``:
