@@ -274,6 +274,15 @@ def _lane_loop(params: Params, st: Structure, start: LaneState, inputs: LaneInpu
     return LaneRun(states(*final[:2]), out, snapshot)
 
 
+def rows_innovations(rows) -> tuple | None:
+    """The innovations a scan's rows kept (``LaneRowsInnovations``), lanes first as the
+    sequential path gives them (``(nu, s, valid)``, each ``B T Nb m``); ``None`` for rows
+    without them."""
+    if not isinstance(rows, LaneRowsInnovations):
+        return None
+    return tuple(jnp.transpose(x, (3, 0, 2, 1)) for x in (rows.nu, rows.s, rows.valid))
+
+
 def lane_estimates(st: Structure, z_rows: Float[Array, "T Nz Nb B"],
                    P_rows: Float[Array, "T X Nb B"]):
     """Angles, their standard deviations and biases (``B T K`` each) from the rows of
@@ -353,15 +362,7 @@ class Lanes(AbstractPath):
 
     def run(self, params: Params, series: SensorSeries, method: str, state: FilterState
             ) -> tuple[FilterState, Estimate]:
-        st = structure(params.robot, method)
-        dtype = state.z.dtype
-        series = prepare(params, series, method, dtype)
-        run = lane_scan(params, st, LaneState(state.z, state.P, state.gyro_hold),
-                        lane_inputs(params, st, series.dt, series.gyro, series.hall_v),
-                        self.remat_chunk)
-        angles, std, bias = lane_estimates(st, run.rows.z, run.rows.P)
-        return FilterState(*run.final), Estimate(angles, std, bias,
-                                                 jnp.moveaxis(run.rows.skipped, 0, 1))
+        return self._run(params, series, method, state, innovations=False)
 
     innovations_in_pass: ClassVar[bool] = True
 
@@ -370,15 +371,18 @@ class Lanes(AbstractPath):
         """``run``, the estimate carrying each row's fused Hall innovations from the same
         scan (``Estimate.innovations``: ``(nu, s, valid)``, ``B T Nb m`` as the sequential
         path gives them)."""
+        return self._run(params, series, method, state, innovations=True)
+
+    def _run(self, params: Params, series: SensorSeries, method: str, state: FilterState,
+             innovations: bool) -> tuple[FilterState, Estimate]:
         st = structure(params.robot, method)
         dtype = state.z.dtype
         series = prepare(params, series, method, dtype)
-        run = lane_scan_innovations(params, st, LaneState(state.z, state.P, state.gyro_hold),
-                                    lane_inputs(params, st, series.dt, series.gyro,
-                                                series.hall_v))
-        rows = run.rows
-        angles, std, bias = lane_estimates(st, rows.z, rows.P)
-        lanes_last = tuple(jnp.transpose(x, (3, 0, 2, 1)) for x in (rows.nu, rows.s, rows.valid))
+        start = LaneState(state.z, state.P, state.gyro_hold)
+        inputs = lane_inputs(params, st, series.dt, series.gyro, series.hall_v)
+        run = (lane_scan_innovations(params, st, start, inputs) if innovations
+               else lane_scan(params, st, start, inputs, self.remat_chunk))
+        angles, std, bias = lane_estimates(st, run.rows.z, run.rows.P)
         return FilterState(*run.final), Estimate(angles, std, bias,
-                                                 jnp.moveaxis(rows.skipped, 0, 1),
-                                                 innovations=lanes_last)
+                                                 jnp.moveaxis(run.rows.skipped, 0, 1),
+                                                 innovations=rows_innovations(run.rows))

@@ -52,6 +52,7 @@ from ._lanes import (
     lane_inputs,
     lane_scan,
     lane_scan_innovations,
+    rows_innovations,
 )
 from ._sequential import Sequential
 
@@ -247,10 +248,9 @@ class Segments(AbstractPath):
         def trials(x):  # (B * S, L, ...) -> (B, T, ...)
             return x.reshape((B, S * L) + x.shape[2:])[:, :T]
 
-        innovations = None
-        if isinstance(this.rows, LaneRowsInnovations):  # lanes last -> (lanes, L, Nb, m)
-            innovations = tuple(trials(jnp.transpose(x, (3, 0, 2, 1)))
-                                for x in (this.rows.nu, this.rows.s, this.rows.valid))
+        innovations = rows_innovations(this.rows)  # (lanes, L, Nb, m) each, or None
+        if innovations is not None:
+            innovations = tuple(trials(x) for x in innovations)
         est = Estimate(trials(angles), trials(std), trials(bias),
                        trials(jnp.moveaxis(this.rows.skipped, 0, 1)), innovations=innovations)
         return FilterState(*(_split(x, B, S)[:, -1] for x in this.ended)), est
