@@ -108,9 +108,7 @@ def screened(params: Params, series: SensorSeries, method: str | AbstractModel =
 @eqx.filter_jit
 def _screened(params: Params, series: SensorSeries, method: str
               ) -> tuple[ScreenedSeries, Array]:
-    dtype = params.log_q.dtype
-    return judged(params, jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype), series),
-                  method)
+    return judged(params, series, method, params.log_q.dtype)
 
 
 def series_faults(params: Params, series: SensorSeries, method: str = "kckf") -> Array:

@@ -45,12 +45,13 @@ def _cast(series, dtype):
     return jax.tree_util.tree_map(lambda x: jnp.asarray(x).astype(dtype), series)
 
 
-def judged(params: Params, series: SensorSeries, method: str | AbstractModel = "kckf"
-           ) -> tuple[ScreenedSeries, jax.Array]:
-    """``series`` (a recording or a batch, not a lone row) judged row by row and over time
-    (``_health.screened_series``, as ``params.faults`` says; no gyro stand-ins under exact
-    kinematics: ``exact_kinematics``), and each reading's code (``... T G + M``,
-    ``_screen.FAULT_KINDS``; 0: used or missing)."""
+def judged(params: Params, series: SensorSeries, method: str | AbstractModel = "kckf",
+           dtype=None) -> tuple[ScreenedSeries, jax.Array]:
+    """``series`` (a recording or a batch, not a lone row; cast to ``dtype`` when given)
+    judged row by row and over time (``_health.screened_series``, as ``params.faults`` says;
+    no gyro stand-ins under exact kinematics: ``exact_kinematics``), and each reading's code
+    (``... T G + M``, ``_screen.FAULT_KINDS``; 0: used or missing)."""
+    series = _cast(series, dtype)
     if jnp.ndim(series.dt) == 0:
         raise ValueError("judged takes a recording or a batch (a time axis); a lone row is "
                          "prepared by prepare_row")
