@@ -6,6 +6,7 @@ filters each recording once where the path allows."""
 from __future__ import annotations
 
 import dataclasses
+from typing import ClassVar
 
 import numpy as np
 import pytest
@@ -69,9 +70,51 @@ def test_the_segments_pass_gives_them_too():
         np.testing.assert_allclose(np.asarray(got, np.float64), ref, rtol=1e-9, atol=1e-9)
 
 
+def test_the_steady_pass_gives_them_too():
+    """A regular recording on the steady path (the converged map after the head rows): each
+    row's innovations, read back from its new joint angles, equal the second pass's; ``x,x,y``
+    pads its second block, whose padding slot must stay out of the other joints'."""
+    s = kk.simulate("x,x,y", "cyclic", 4, 60.0, config=kk.SimConfig(timestamp_jitter_s=0.0))
+    est = kk.filter_sessions([s], "kckf", path="steady", dtype=np.float64, innovations=True)[0]
+    plain = kk.filter_sessions([s], "kckf", path="steady", dtype=np.float64)[0]
+    assert est.path == plain.path == "steady"
+    np.testing.assert_allclose(est.angles, plain.angles, rtol=0, atol=1e-12)
+    params = kk.Params.paper_defaults(s.robot, s.hall_models, dtype=np.float64)
+    want = session_innovations([s], "kckf", params)[0]
+    assert want[2].sum() > 0.7 * want[2].size
+    # The converged rows use the head's last covariance: as close as the steady estimates are.
+    for got, ref in zip(est.innovations, want):
+        np.testing.assert_allclose(np.asarray(got, np.float64), ref, rtol=1e-9, atol=1e-9)
+
+
+def test_the_parallel_pass_gives_them_too():
+    """The parallel path (every row's own affine map, dropped readings included): each row's
+    innovations read back by its entering covariance equal the second pass's."""
+    s = kk.simulate("x,x,y", "cyclic", 5, 12.0, drop_prob=0.02)
+    est = kk.filter_sessions([s], "kckf", path="parallel", dtype=np.float64,
+                             innovations=True)[0]
+    assert est.path == "parallel"
+    params = kk.Params.paper_defaults(s.robot, s.hall_models, dtype=np.float64)
+    want = session_innovations([s], "kckf", params)[0]
+    assert not want[2].all()  # some readings dropped: their innovations are not valid
+    for got, ref in zip(est.innovations, want):
+        np.testing.assert_allclose(np.asarray(got, np.float64), ref, rtol=1e-11, atol=1e-11)
+
+
+class _Plain(kk.AbstractPath):
+    """A caller's path that computes no innovations in its pass."""
+
+    name: ClassVar[str] = "plain"
+
+    def applies(self, params, series, method, state=None):
+        return None
+
+    def run(self, params, series, method, state):
+        return kk.Sequential().run(params, series, method, state)
+
+
 def test_a_baseline_or_a_path_without_them_carries_none():
     s = kk.simulate("x,y", "cyclic", 1, 4.0)
     assert kk.filter_sessions([s], "hall_l", innovations=True)[0].innovations is None
-    regular = kk.simulate("x,y", "cyclic", 1, 50.0, config=kk.SimConfig(timestamp_jitter_s=0.0))
-    est = kk.filter_sessions([regular], "kckf", path="steady", innovations=True)[0]
-    assert est.path == "steady" and est.innovations is None
+    est = kk.filter_sessions([s], "kckf", path=_Plain(), innovations=True)[0]
+    assert est.path == "plain" and est.innovations is None

@@ -25,7 +25,9 @@ from .._models._kernel import (
     FilterInput,
     SensorSeries,
     block_estimate,
+    block_hall,
     block_inputs,
+    block_step,
     block_update,
     fused_pairs,
     hall_measurements,
@@ -75,6 +77,65 @@ def step_maps(params: Params, st: Structure, P: Float[Array, "Nb Nz Nz"], row: B
         return P_new, cols[:nz].T, cols[nz:nz + m1].T, cols[nz + m1:].T
 
     return StepMaps(*jax.vmap(one_block)(P, *noise, rb, vb))
+
+
+class InnovationMaps(NamedTuple):
+    """The fused Hall innovations of a row read back from its result (``innovation_maps``):
+    ``nu = W (hb - z_new[:m])`` per block, and their variances ``s`` (``Nb x ...``; a leading
+    row axis ``R`` where every row's are kept).
+
+    Attributes:
+        W: the map of the row's residuals ``hb - z_new[:m]`` (``Nb m m``).
+        s: each joint's innovation variance (``Nb m``), as the kernel's ``block_step`` gives.
+    """
+
+    W: Float[Array, "*R Nb m m"]
+    s: Float[Array, "*R Nb m"]
+
+
+def innovation_maps(st: Structure, P: Float[Array, "Nb Nz Nz"], row: BlockInputs
+                    ) -> InnovationMaps:
+    """How a row's fused Hall innovations follow from its result, for the entering covariance
+    ``P``: the paths that compute the mean as affine maps (steady, parallel) never form the
+    prediction, but they have the new state, and that is enough.
+
+    The kernel updates the joints one by one (``block_step``): ``nu_i = hb_i - z^(i)_i``, then
+    ``z^(i+1) = z^(i) + K_i nu_i``. So the residual after the row, ``hb - z_new[:m]``, is
+    ``U nu`` with ``U`` upper triangular (``U_ij = delta_ij - K_j[i]`` for ``j >= i``; its
+    diagonal ``r_i / s_i > 0``), and ``nu = W (hb - z_new[:m])`` with ``W = U^-1``. Both
+    sides are linear in the readings, so ``W = Nh (I - C Gh)^-1`` from the Jacobians in ``hb``
+    of ``nu`` (``Nh``) and of ``z_new[:m]`` (``C Gh``), taken of the kernel's own step (no
+    second implementation of it)."""
+    nz, m1, m = st.n_z, st.m + 1, st.m
+    dt = row.dt
+
+    def one_block(P, alpha, beta, gamma, rb, vb):
+        z0, r0 = jnp.zeros(nz, P.dtype), jnp.zeros(m1, P.dtype)
+
+        def f(h):
+            z, _, _, _, nu, s = block_step(st, z0, P, r0, alpha, beta, gamma, h, rb, vb, dt)
+            return (z[:m], nu), s
+
+        (CGh, Nh), s = jax.jacfwd(f, has_aux=True)(jnp.zeros(m, P.dtype))
+        # W (I - C Gh) = Nh, solved as its transpose.
+        W = jnp.linalg.solve((jnp.eye(m, dtype=P.dtype) - CGh).T, Nh.T).T
+        return W, s
+
+    return InnovationMaps(*jax.vmap(one_block)(P, *row.noise, row.rb, row.vb))
+
+
+def read_innovations(params: Params, st: Structure, maps: InnovationMaps,
+                     hall_v: Float[Array, "*B T M"], joints: Float[Array, "*B T Nb m"]
+                     ) -> tuple[Float[Array, "*B T Nb m"], Float[Array, "*B T Nb m"],
+                                Bool[Array, "*B T Nb m"]]:
+    """Every row's fused Hall innovations ``(nu, s, valid)`` from its new joint angles
+    (``joints``: ``z_new[:m]`` per block, 0 at a padding joint) and its Hall voltages, with
+    ``maps`` per row (a row axis ``T``) or one map for every row: ``innovation_maps``."""
+    hb, _, vb = jax.vmap(lambda v: block_hall(params, st, v, in_loop=False))(
+        hall_v.reshape(-1, hall_v.shape[-1]))
+    hb, vb = hb.reshape(joints.shape), vb.reshape(joints.shape)
+    nu = jnp.einsum("...pij,...pj->...pi", maps.W, hb - joints)
+    return nu, jnp.broadcast_to(maps.s, nu.shape), vb
 
 
 def covariance_phase(params: Params, st: Structure, P0: Float[Array, "Nb Nz Nz"],

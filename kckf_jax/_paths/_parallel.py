@@ -20,7 +20,7 @@ from .._models._classes import structure
 from .._models._kernel import Estimate, FilterInput, FilterState, SensorSeries, block_estimate
 from .._models._params import Params
 from .._readings._prepare import prepare
-from ._affine import covariance_phase, series_inputs
+from ._affine import covariance_phase, innovation_maps, read_innovations, series_inputs
 from ._base import AbstractPath, kalman_only
 
 
@@ -38,9 +38,18 @@ class Parallel(AbstractPath):
             ) -> tuple[FilterState, Estimate]:
         return jax.vmap(lambda s, x: _one_trial(params, s, method, x))(series, state)
 
+    innovations_in_pass: ClassVar[bool] = True
 
-def _one_trial(params: Params, series: SensorSeries, method: str, state: FilterState
-               ) -> tuple[FilterState, Estimate]:
+    def run_innovations(self, params: Params, series: SensorSeries, method: str,
+                        state: FilterState) -> tuple[FilterState, Estimate]:
+        """``run``, the estimate carrying every row's fused Hall innovations
+        (``Estimate.innovations``: ``(nu, s, valid)``, ``B T Nb m``), read back from each
+        row's new state by its entering covariance (``_affine.innovation_maps``)."""
+        return jax.vmap(lambda s, x: _one_trial(params, s, method, x, True))(series, state)
+
+
+def _one_trial(params: Params, series: SensorSeries, method: str, state: FilterState,
+               innovations: bool = False) -> tuple[FilterState, Estimate]:
     st = structure(params.robot, method)
     dtype = state.z.dtype
     series = prepare(params, series, method, dtype)
@@ -56,8 +65,14 @@ def _one_trial(params: Params, series: SensorSeries, method: str, state: FilterS
          + jnp.einsum("kpaj,kpj->kpa", maps.Gh, kept_rows.hb))
     c = c.at[0].add(jnp.einsum("pab,pb->pa", As[0], state.z))
     z = _compose(As, c)
-    est = jax.vmap(lambda zk, Pk: block_estimate(st, zk, Pk, False))(z, Ps)
-    return FilterState(z[-1], P_last, held[-1]), dataclasses.replace(est, skipped=~ok)
+    est = dataclasses.replace(jax.vmap(lambda zk, Pk: block_estimate(st, zk, Pk, False))(z, Ps),
+                              skipped=~ok)
+    if innovations:
+        P_in = jnp.concatenate([state.P[None], Ps[:-1]])
+        maps = jax.vmap(lambda P, row: innovation_maps(st, P, row))(P_in, rows)
+        nu, s, valid = read_innovations(params, st, maps, series.hall_v, z[..., : st.m])
+        est = dataclasses.replace(est, innovations=(nu, s, valid & ok[:, None, None]))
+    return FilterState(z[-1], P_last, held[-1]), est
 
 
 def _compose(As: Float[Array, "T Nb Nz Nz"], c: Float[Array, "T Nb Nz"]

@@ -17,13 +17,14 @@ has no branch and no fallback.
 
 from __future__ import annotations
 
+import dataclasses
 from typing import ClassVar, NamedTuple
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float
+from jaxtyping import Array, Bool, Float
 
 from .._models._blocks import Structure
 from .._models._classes import init_state, model_of, structure
@@ -41,9 +42,11 @@ from .._readings._prepare import prepare
 from ._affine import (
     StepMaps,
     covariance_phase,
+    innovation_maps,
     input_weights,
     last_finite,
     output_map,
+    read_innovations,
     reading_maps,
     series_inputs,
     step_maps,
@@ -64,11 +67,13 @@ class SteadyForm(NamedTuple):
     """What the steady path computes once for a regular batch (``Steady._form``): the head
     rows' own maps and covariances (``form.head``, a leading row axis), the converged map
     after them (``form.map``) and the first converged row's block inputs (``form.first``:
-    its time step and noise stand for every later row's)."""
+    its time step and noise stand for every later row's) and trial 0's inputs of the head
+    rows and that first converged row (``form.rows``, a leading row axis: ``n_head + 1``)."""
 
     head: StepMaps
     map: StepMaps
     first: BlockInputs
+    rows: BlockInputs
 
 
 class Steady(AbstractPath):
@@ -174,6 +179,20 @@ class Steady(AbstractPath):
 
     def run(self, params: Params, series: SensorSeries, method: str, state: FilterState
             ) -> tuple[FilterState, Estimate]:
+        return self._run(params, series, method, state, innovations=False)
+
+    innovations_in_pass: ClassVar[bool] = True
+
+    def run_innovations(self, params: Params, series: SensorSeries, method: str,
+                        state: FilterState) -> tuple[FilterState, Estimate]:
+        """``run``, the estimate carrying every row's fused Hall innovations
+        (``Estimate.innovations``: ``(nu, s, valid)``, ``B T Nb m``), read back from the new
+        joint angles the pass computes (``_affine.innovation_maps``): the head rows' own
+        maps, then the converged row's for every later row."""
+        return self._run(params, series, method, state, innovations=True)
+
+    def _run(self, params: Params, series: SensorSeries, method: str, state: FilterState,
+             innovations: bool) -> tuple[FilterState, Estimate]:
         dtype = state.z.dtype
         n_head = self.head_rows(dtype)
         st = structure(params.robot, method)
@@ -191,6 +210,9 @@ class Steady(AbstractPath):
         skipped = jnp.broadcast_to(jnp.concatenate([~ok, jnp.zeros(T - n_head, bool)]),
                                    angles.shape[:2])
         est = Estimate(angles, jnp.broadcast_to(std, angles.shape), bias, skipped)
+        if innovations:
+            est = dataclasses.replace(est, innovations=self._innovations(
+                params, st, series, state, form, angles))
         held = jax.vmap(last_finite)(series.gyro, state.gyro_hold)
         return FilterState(z, jnp.broadcast_to(P_ss, state.P.shape), held), est
 
@@ -205,7 +227,26 @@ class Steady(AbstractPath):
         head = jax.tree_util.tree_map(lambda x: x[:n_head], rows)
         P_head, head_maps = covariance_phase(params, st, state.P[0], head)
         last = jax.tree_util.tree_map(lambda x: x[n_head], rows)
-        return SteadyForm(head_maps, step_maps(params, st, P_head, last), last)
+        return SteadyForm(head_maps, step_maps(params, st, P_head, last), last, rows)
+
+    def _innovations(self, params: Params, st: Structure, series: SensorSeries,
+                     state: FilterState, form: SteadyForm, angles: Float[Array, "B T K"]
+                     ) -> tuple[Float[Array, "B T Nb m"], Float[Array, "B T Nb m"],
+                                Bool[Array, "B T Nb m"]]:
+        """``(nu, s, valid)`` of every row from its new joint angles: each head row by its
+        entering covariance, every converged row by the head's last (``innovation_maps``)."""
+        n_head = form.head.A.shape[0]
+        T = series.dt.shape[1]
+        P_in = jnp.concatenate([state.P[:1], form.head.P])  # entering rows 0 .. n_head
+        maps = jax.vmap(lambda P, row: innovation_maps(st, P, row))(P_in, form.rows)
+        maps = jax.tree_util.tree_map(
+            lambda x: jnp.concatenate([x[:n_head], jnp.broadcast_to(
+                x[n_head], (T - n_head,) + x.shape[1:])]), maps)
+        index = np.asarray(st.angle_index)[:, : st.m]
+        joints = jnp.where(index >= 0, angles[..., np.maximum(index, 0)], 0.0)
+        nu, s, valid = read_innovations(params, st, maps, series.hall_v, joints)
+        ok = jnp.concatenate([form.head.ok, jnp.ones(T - n_head, bool)])
+        return nu, s, valid & ok[:, None, None]
 
     def _mean(self, params: Params, st: Structure, series: SensorSeries,
              z0: Float[Array, "B Nb Nz"], hold0: Float[Array, "B G"], form: SteadyForm

@@ -184,10 +184,10 @@ def evaluate_sessions(sessions: Sequence[Session], methods: Sequence[str],
     # first-order checks do not refuse data that kckf3d is there for; each method's own
     # estimates are screened by its own model either way (``filter_sessions``).
     # The consistency figures' innovations come from the filter's own pass where its path
-    # computes them there (``Estimate.innovations``: the sequential path, which a one-shot
-    # command takes on most recordings), so each recording is filtered once. Otherwise (the
-    # smoothed estimates, another path) they are a second pass: computed on another thread
-    # while the filters run (XLA computes without holding the interpreter).
+    # computes them there (``Estimate.innovations``: every built-in path), so each recording
+    # is filtered once. Otherwise (the smoothed estimates, a caller's path without them) they
+    # are a second pass: computed on another thread while the filters run (XLA computes
+    # without holding the interpreter).
     pool = concurrent.futures.ThreadPoolExecutor(1)
     pending = {m: pool.submit(session_innovations, sessions, m, params, gaps, faults)
                for m in methods if model_of(m).kalman and smooth}
