@@ -60,6 +60,9 @@ def test_evaluate_smooth_scores_the_smoother(session, capsys):
     assert k["smoothed"] is True and k["path"] == "smoothed"
     assert k["mean_rmse_deg"] < filtered["kckf"]["mean_rmse_deg"]
     assert k["steps_scored"] == filtered["kckf"]["steps_scored"]
+    # The NIS from the smoother's forward pass (the filter): one pass, the filter's figures.
+    assert k["filter_passes"] == 1 and filtered["kckf"]["filter_passes"] == 1
+    assert k["nis"]["mean"] == pytest.approx(filtered["kckf"]["nis"]["mean"], rel=1e-5)
     # A method that is not a Kalman filter is scored as it is, and says so.
     assert "smoothed" not in smoothed["gyro"]
     assert smoothed["gyro"]["mean_rmse_deg"] == filtered["gyro"]["mean_rmse_deg"]

@@ -118,3 +118,28 @@ def test_a_baseline_or_a_path_without_them_carries_none():
     assert kk.filter_sessions([s], "hall_l", innovations=True)[0].innovations is None
     est = kk.filter_sessions([s], "kckf", path=_Plain(), innovations=True)[0]
     assert est.path == "plain" and est.innovations is None
+
+
+@pytest.mark.parametrize("layout", ["sequential", "lanes", "steady"])
+def test_the_smoother_forward_pass_gives_them_too(layout):
+    """``kckf evaluate --smooth``: the smoother's forward pass is the filter, and each layout
+    keeps its innovations (the sequential one from its moments, the lanes' scan, the steady
+    smoother read back as the steady path): equal to the second pass's, and the smoothed
+    estimates unchanged by asking."""
+    config = kk.SimConfig(timestamp_jitter_s=0.0) if layout == "steady" else None
+    sessions = [kk.simulate("x,x,y", "cyclic", k, 60.0 if layout == "steady" else 6.0,
+                            config=config) for k in (1, 2)]
+    params = kk.Params.paper_defaults(sessions[0].robot, sessions[0].hall_models,
+                                      dtype=np.float64)
+    batch = kk.pad_series([kk.session_series(s, np.float64) for s in sessions])
+    plain = kk.smooth_batch(params, batch, "kckf", path=layout)
+    est = kk.smooth_batch(params, batch, "kckf", path=layout, innovations=True)
+    assert est.path == plain.path == ("smoothed" if layout == "sequential"
+                                      else f"smoothed:{layout}")
+    assert plain.innovations is None
+    np.testing.assert_allclose(est.angles, plain.angles, rtol=0, atol=1e-12)
+    want = session_innovations(sessions, "kckf", params)
+    tol = 1e-9 if layout == "steady" else 1e-11
+    for b, w in enumerate(want):
+        for got, ref in zip(est.innovations, w):
+            np.testing.assert_allclose(np.asarray(got[b], np.float64), ref, rtol=tol, atol=tol)

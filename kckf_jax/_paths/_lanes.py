@@ -138,6 +138,20 @@ class LaneMoments(NamedTuple):
     S: Float[Array, "T Y Nb B"]
 
 
+class LaneMomentsInnovations(NamedTuple):
+    """Per row, ``LaneMoments``' fields and ``LaneInnovations``' (``lane_moments_scan(...,
+    innovations=True)``: the smoother's forward pass with the diagnostics' innovations)."""
+
+    z: Float[Array, "T Nz Nb B"]
+    P: Float[Array, "T X Nb B"]
+    skipped: Bool[Array, "T B"]
+    y: Float[Array, "T Ny Nb B"]
+    S: Float[Array, "T Y Nb B"]
+    nu: Float[Array, "T m Nb B"]
+    s: Float[Array, "T m Nb B"]
+    valid: Bool[Array, "T m Nb B"]
+
+
 class LaneRun(NamedTuple):
     """What a lanes scan returns: the final state of every lane, what it kept per row
     (``LaneRows``, ``LaneInnovations`` or ``LaneMoments``, as the scan's name says), and the
@@ -170,11 +184,12 @@ def lane_scan_innovations(params: Params, st: Structure, start: LaneState, input
     return _lane_loop(params, st, start, inputs, LaneRowsInnovations, None, snapshot_row)
 
 
-def lane_moments_scan(params: Params, st: Structure, start: LaneState, inputs: LaneInputs
-                      ) -> LaneRun:
+def lane_moments_scan(params: Params, st: Structure, start: LaneState, inputs: LaneInputs,
+                      innovations: bool = False) -> LaneRun:
     """The filter with each row's predicted moments (the smoother's forward pass): ``LaneRun``
-    with ``LaneMoments``."""
-    return _lane_loop(params, st, start, inputs, LaneMoments, None, None)
+    with ``LaneMoments`` (``innovations``: ``LaneMomentsInnovations``)."""
+    keep = LaneMomentsInnovations if innovations else LaneMoments
+    return _lane_loop(params, st, start, inputs, keep, None, None)
 
 
 def _kept(keep: type, step, x_new, fin, vb):
@@ -184,6 +199,9 @@ def _kept(keep: type, step, x_new, fin, vb):
         return LaneInnovations(step.nu, step.s, vb & fin)
     if keep is LaneMoments:
         return LaneMoments(x_new[:nz], x_new[nz:], ~fin, step.y, step.S)
+    if keep is LaneMomentsInnovations:
+        return LaneMomentsInnovations(x_new[:nz], x_new[nz:], ~fin, step.y, step.S, step.nu,
+                                      step.s, vb & fin)
     if keep is LaneRowsInnovations:
         return LaneRowsInnovations(x_new[:nz], x_new[nz:], ~fin, step.nu, step.s, vb & fin)
     return LaneRows(x_new[:nz], x_new[nz:], ~fin)
@@ -255,7 +273,7 @@ def _lane_loop(params: Params, st: Structure, start: LaneState, inputs: LaneInpu
         # No-op rows pad the last chunk: no time step, every reading missing.
         final, out = chunked_scan(body, carry, rows, remat_chunk,
                                   jax.tree_util.tree_leaves(NO_OP_INPUTS))
-    elif keep in (LaneMoments, LaneRowsInnovations) or snapshot_row is not None:
+    elif keep not in (LaneRows, LaneInnovations) or snapshot_row is not None:
         # Each row recomputed under reverse mode (only the carries saved): the transposed
         # body then runs as one piece (64 x 10,000 bench, float32: gradient 3.7 -> 3.0 s).
         final, out = jax.lax.scan(jax.checkpoint(body), carry, rows)
@@ -275,10 +293,10 @@ def _lane_loop(params: Params, st: Structure, start: LaneState, inputs: LaneInpu
 
 
 def rows_innovations(rows) -> tuple | None:
-    """The innovations a scan's rows kept (``LaneRowsInnovations``), lanes first as the
-    sequential path gives them (``(nu, s, valid)``, each ``B T Nb m``); ``None`` for rows
-    without them."""
-    if not isinstance(rows, LaneRowsInnovations):
+    """The innovations a scan's rows kept (``LaneRowsInnovations``,
+    ``LaneMomentsInnovations``), lanes first as the sequential path gives them (``(nu, s,
+    valid)``, each ``B T Nb m``); ``None`` for rows without them."""
+    if not isinstance(rows, (LaneRowsInnovations, LaneMomentsInnovations)):
         return None
     return tuple(jnp.transpose(x, (3, 0, 2, 1)) for x in (rows.nu, rows.s, rows.valid))
 

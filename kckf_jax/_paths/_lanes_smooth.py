@@ -18,11 +18,19 @@ from jaxtyping import Array, Bool, Float
 
 from .._models._blocks import Structure
 from .._models._kalman import cholesky_solve
-from .._models._kernel import FilterState, SensorSeries
+from .._models._kernel import Estimate, FilterState, SensorSeries
 from .._models._params import Params
 from .._readings._prepare import prepare
 from ._lane_step import _Consts, _tri
-from ._lanes import LaneMoments, LaneState, lane_estimates, lane_inputs, lane_moments_scan
+from ._lanes import (
+    LaneMoments,
+    LaneMomentsInnovations,
+    LaneState,
+    lane_estimates,
+    lane_inputs,
+    lane_moments_scan,
+    rows_innovations,
+)
 
 
 def lane_rts_step(st: Structure, c: _Consts, z_f, P_f, y_pred, S, ts, skipped, z_s, P_s):
@@ -66,7 +74,8 @@ def lane_rts_step(st: Structure, c: _Consts, z_f, P_f, y_pred, S, ts, skipped, z
     return jnp.where(skipped, z_s, z), jnp.where(skipped, P_s, P)
 
 
-def lane_rts(st: Structure, moments: LaneMoments, ts_rows: Float[Array, "T B"]):
+def lane_rts(st: Structure, moments: LaneMoments | LaneMomentsInnovations,
+             ts_rows: Float[Array, "T B"]):
     """The backward pass over ``lane_moments_scan``'s rows (rows first, trials last): the
     smoothed ``(z, P)`` of every row (the last row's are its filtered ones)."""
     z_rows, P_rows, skipped, y_rows, S_rows = (moments.z, moments.P, moments.skipped,
@@ -88,16 +97,17 @@ def lane_rts(st: Structure, moments: LaneMoments, ts_rows: Float[Array, "T B"]):
     return jnp.concatenate([z, z_rows[-1:]]), jnp.concatenate([P, P_rows[-1:]])
 
 
-def lane_smooth(params: Params, st: Structure, series: SensorSeries, state: FilterState
-                ) -> tuple[Float[Array, "B T K"], Float[Array, "B T K"], Float[Array, "B T K"],
-                           Bool[Array, "B T"]]:
+def lane_smooth(params: Params, st: Structure, series: SensorSeries, state: FilterState,
+                innovations: bool = False) -> Estimate:
     """The smoothed angles, their standard deviations and biases of a batch of trials (leading
-    axis ``B`` on ``series`` and ``state``), and the skipped rows."""
+    axis ``B`` on ``series`` and ``state``), and the skipped rows; ``innovations``: with the
+    forward pass's fused Hall innovations (``Estimate.innovations``, ``B T Nb m``)."""
     dtype = state.z.dtype
     series = prepare(params, series, dtype=dtype)  # a linear model: the paper's gyro pairs
     rows = lane_moments_scan(params, st, LaneState(state.z, state.P, state.gyro_hold),
                              lane_inputs(params, st, series.dt, series.gyro,
-                                         series.hall_v)).rows
+                                         series.hall_v), innovations).rows
     z, P = lane_rts(st, rows, jnp.moveaxis(series.dt, 0, 1))
     angles, std, bias = lane_estimates(st, z, P)
-    return angles, std, bias, jnp.moveaxis(rows.skipped, 0, 1)
+    return Estimate(angles, std, bias, jnp.moveaxis(rows.skipped, 0, 1),
+                    innovations=rows_innovations(rows))

@@ -223,8 +223,8 @@ def filter_sessions(
     trials of the batch (``split_at_gaps``). ``smooth``: the fixed-interval (RTS) smoothed
     estimates instead (``smooth_batch``; the Kalman methods), ``path`` ``"smoothed"``.
     ``faults``: the fault policy (``FaultPolicy`` or its name; default: ``params``' own, else
-    ``isolate``). ``innovations``: as ``filter_batch``'s (not with ``smooth``), each
-    session's restarting where the filter does."""
+    ``isolate``). ``innovations``: as ``filter_batch``'s (with ``smooth``, the smoother's
+    forward pass's: the filter's), each session's restarting where the filter does."""
     method = method_name(method)
     plist = session_params(sessions, params, dtype, faults)
     pieces = [(i, piece) for i, s in enumerate(sessions) for piece in split_at_gaps(s, gaps)]
@@ -243,7 +243,8 @@ def filter_sessions(
         batch = jax.tree_util.tree_map(lambda x, d=dtype_p: jnp.asarray(x, d), batch)
         if smooth:  # screened once: the smoother's paths take the screened rows as they are
             screened_batch, faults = screened(p, batch, method)
-            est = dataclasses.replace(smooth_batch(p, screened_batch, method), faults=faults)
+            est = dataclasses.replace(smooth_batch(p, screened_batch, method,
+                                                   innovations=innovations), faults=faults)
         else:
             est = filter_batch(p, batch, method, path, innovations=innovations)
         arrays = jax.tree_util.tree_map(np.asarray, est)

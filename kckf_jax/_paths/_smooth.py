@@ -75,11 +75,13 @@ def rts(params: Params, method: str, zs, Ps, mom: StepMoments):
     return jnp.concatenate([z, zs[-1:]]), jnp.concatenate([P, Ps[-1:]])
 
 
-def _smoothed(params: Params, series: SensorSeries, method: str, state: FilterState | None):
+def _smoothed(params: Params, series: SensorSeries, method: str, state: FilterState | None,
+              innovations: bool = False):
     _, zs, Ps, mom = filter_moments(params, series, method, state)
     z, P = rts(params, method, zs, Ps, mom)
     est = jax.vmap(lambda a, b: model_estimate(params.robot, method, a, b))(z, P)
-    return dataclasses.replace(est, skipped=mom.skipped)
+    return dataclasses.replace(est, skipped=mom.skipped, innovations=(
+        (mom.nu, mom.s, mom.valid) if innovations else None))
 
 
 def smooth(params: Params, series: SensorSeries, method: str | AbstractModel = "kckf",
@@ -116,7 +118,7 @@ SMOOTH_PATHS = ("auto", "sequential", "lanes", "steady")
 
 
 def smooth_batch(params: Params, series: SensorSeries, method: str | AbstractModel = "kckf",
-                 path: str | AbstractPath = "auto") -> Estimate:
+                 path: str | AbstractPath = "auto", innovations: bool = False) -> Estimate:
     """``smooth`` over a batch of padded trials (leading axis ``B``; ``pad_series``).
 
     ``path``, as the filter's: ``"steady"`` (a regular recording whose filter and smoother
@@ -129,13 +131,16 @@ def smooth_batch(params: Params, series: SensorSeries, method: str | AbstractMod
     (``AbstractPath.smoother_layout``: an ``Auto`` of the caller's moves the smoother as it
     moves the filter). The same estimates to rounding;
     ``Estimate.path`` is ``"smoothed"`` (sequential), ``"smoothed:lanes"`` or
-    ``"smoothed:steady"``."""
+    ``"smoothed:steady"``. ``innovations``: the estimate also carries the forward pass's
+    fused Hall innovations (``Estimate.innovations``, the filter's, as ``filter_batch(...,
+    innovations=True)`` gives them; every layout computes them in that pass)."""
     method = _check(method)
-    return _smooth_on(_smooth_path(params, series, method, path), params, series, method)
+    return _smooth_on(_smooth_path(params, series, method, path), params, series, method,
+                      innovations)
 
 
-def _smooth_on(layout: SmootherLayout, params: Params, series: SensorSeries, method: str
-               ) -> Estimate:
+def _smooth_on(layout: SmootherLayout, params: Params, series: SensorSeries, method: str,
+               innovations: bool = False) -> Estimate:
     """The batch smoothed in ``layout`` (the path's ``smoother_layout``), labelled."""
     if layout.name == "steady":
         smoother = SteadySmoother(steady=layout.steady)
@@ -143,11 +148,11 @@ def _smooth_on(layout: SmootherLayout, params: Params, series: SensorSeries, met
             why = smoother.applies(params, series, method)
             if why is not None:
                 raise ValueError(f"smooth: the steady path does not apply: {why}")
-        est = _smooth_steady(smoother, params, series, method)
+        est = _smooth_steady(smoother, params, series, method, innovations)
     elif layout.name == "lanes":
-        est = _smooth_lanes(params, series, method)
+        est = _smooth_lanes(params, series, method, innovations)
     else:
-        est = _smooth_many(params, series, method)
+        est = _smooth_many(params, series, method, innovations)
     label = "smoothed" if layout.name == "sequential" else f"smoothed:{layout.name}"
     return dataclasses.replace(est, path=label, names=params.robot.angle_names)
 
@@ -176,21 +181,17 @@ def _smooth_one(params, series, method, state):
 
 
 @eqx.filter_jit
-def _smooth_many(params, series, method):
-    return jax.vmap(lambda s: _smoothed(params, s, method, None))(series)
-
-
-
-
-@eqx.filter_jit
-def _smooth_lanes(params, series, method):
-    state = init_states(params, method, jnp.shape(series.dt)[0])
-    angles, std, bias, skipped = lane_smooth(params, structure(params.robot, method), series,
-                                             state)
-    return Estimate(angles, std, bias, skipped)
+def _smooth_many(params, series, method, innovations=False):
+    return jax.vmap(lambda s: _smoothed(params, s, method, None, innovations))(series)
 
 
 @eqx.filter_jit
-def _smooth_steady(smoother, params, series, method):
+def _smooth_lanes(params, series, method, innovations=False):
     state = init_states(params, method, jnp.shape(series.dt)[0])
-    return Estimate(*smoother.run(params, series, method, state))
+    return lane_smooth(params, structure(params.robot, method), series, state, innovations)
+
+
+@eqx.filter_jit
+def _smooth_steady(smoother, params, series, method, innovations=False):
+    state = init_states(params, method, jnp.shape(series.dt)[0])
+    return smoother.run(params, series, method, state, innovations)

@@ -211,8 +211,10 @@ class Steady(AbstractPath):
                                    angles.shape[:2])
         est = Estimate(angles, jnp.broadcast_to(std, angles.shape), bias, skipped)
         if innovations:
+            index = np.asarray(st.angle_index)[:, : st.m]  # the joints' new angles: z[:m]
+            joints = jnp.where(index >= 0, angles[..., np.maximum(index, 0)], 0.0)
             est = dataclasses.replace(est, innovations=self._innovations(
-                params, st, series, state, form, angles))
+                params, st, series, state, form, joints))
         held = jax.vmap(last_finite)(series.gyro, state.gyro_hold)
         return FilterState(z, jnp.broadcast_to(P_ss, state.P.shape), held), est
 
@@ -230,11 +232,13 @@ class Steady(AbstractPath):
         return SteadyForm(head_maps, step_maps(params, st, P_head, last), last, rows)
 
     def _innovations(self, params: Params, st: Structure, series: SensorSeries,
-                     state: FilterState, form: SteadyForm, angles: Float[Array, "B T K"]
+                     state: FilterState, form: SteadyForm, joints: Float[Array, "B T Nb m"]
                      ) -> tuple[Float[Array, "B T Nb m"], Float[Array, "B T Nb m"],
                                 Bool[Array, "B T Nb m"]]:
-        """``(nu, s, valid)`` of every row from its new joint angles: each head row by its
-        entering covariance, every converged row by the head's last (``innovation_maps``)."""
+        """``(nu, s, valid)`` of every row from its new joint angles (``joints``: each block's
+        ``z[:m]``, 0 at a padding joint): each head row by its entering covariance, every
+        converged row by the head's last (``innovation_maps``). The steady smoother's forward
+        pass reads them the same way."""
         n_head = form.head.A.shape[0]
         T = series.dt.shape[1]
         P_in = jnp.concatenate([state.P[:1], form.head.P])  # entering rows 0 .. n_head
@@ -242,8 +246,6 @@ class Steady(AbstractPath):
         maps = jax.tree_util.tree_map(
             lambda x: jnp.concatenate([x[:n_head], jnp.broadcast_to(
                 x[n_head], (T - n_head,) + x.shape[1:])]), maps)
-        index = np.asarray(st.angle_index)[:, : st.m]
-        joints = jnp.where(index >= 0, angles[..., np.maximum(index, 0)], 0.0)
         nu, s, valid = read_innovations(params, st, maps, series.hall_v, joints)
         ok = jnp.concatenate([form.head.ok, jnp.ones(T - n_head, bool)])
         return nu, s, valid & ok[:, None, None]

@@ -23,11 +23,11 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Bool, Float
+from jaxtyping import Array, Float
 
 from .._models._blocks import predicted_moments
 from .._models._classes import init_state, structure
-from .._models._kernel import FilterInput, FilterState, SensorSeries, block_estimate
+from .._models._kernel import Estimate, FilterInput, FilterState, SensorSeries, block_estimate
 from .._models._params import Params
 from .._readings._prepare import prepare
 from ._affine import output_map, reading_maps, series_inputs, step_maps
@@ -108,11 +108,12 @@ class SteadySmoother(eqx.Module):
                     f"(relative change {change:.1e}, tolerance {tol:.0e})")
         return None
 
-    def run(self, params: Params, series: SensorSeries, method: str, state: FilterState
-            ) -> tuple[Float[Array, "B T K"], Float[Array, "B T K"], Float[Array, "B T K"],
-                       Bool[Array, "B T"]]:
+    def run(self, params: Params, series: SensorSeries, method: str, state: FilterState,
+            innovations: bool = False) -> Estimate:
         """The smoothed angles, their standard deviations and biases of a regular batch, and
-        the skipped rows (``state`` with a leading trial axis)."""
+        the skipped rows (``state`` with a leading trial axis). ``innovations``: the estimate
+        also carries the forward pass's fused Hall innovations (``Steady.run_innovations``'
+        form)."""
         steady = self.steady
         dtype = state.z.dtype
         n_head = steady.head_rows(dtype)
@@ -172,7 +173,9 @@ class SteadySmoother(eqx.Module):
                               axis=1)
         skipped = jnp.broadcast_to(jnp.concatenate([~ok, jnp.zeros(T - n_head, bool)]),
                                    (n_trials, T))
-        return y[..., :K], std, y[..., K:], skipped
+        innov = (steady._innovations(params, st, series, state, form, Z[..., : st.m])
+                 if innovations else None)
+        return Estimate(y[..., :K], std, y[..., K:], skipped, innovations=innov)
 
 
 def _predicted_cov(st, P: Float[Array, "Nb Nz Nz"], noise, ts) -> Float[Array, "Nb Ny Ny"]:

@@ -7,7 +7,6 @@ At the edge with the CLI and the plots: it calls the core (``filter_sessions``,
 
 from __future__ import annotations
 
-import concurrent.futures
 import dataclasses
 from collections.abc import Sequence
 
@@ -184,20 +183,15 @@ def evaluate_sessions(sessions: Sequence[Session], methods: Sequence[str],
     # first-order checks do not refuse data that kckf3d is there for; each method's own
     # estimates are screened by its own model either way (``filter_sessions``).
     # The consistency figures' innovations come from the filter's own pass where its path
-    # computes them there (``Estimate.innovations``: every built-in path), so each recording
-    # is filtered once. Otherwise (the smoothed estimates, a caller's path without them) they
-    # are a second pass: computed on another thread while the filters run (XLA computes
-    # without holding the interpreter).
-    pool = concurrent.futures.ThreadPoolExecutor(1)
-    pending = {m: pool.submit(session_innovations, sessions, m, params, gaps, faults)
-               for m in methods if model_of(m).kalman and smooth}
-    pool.shutdown(wait=False)
+    # computes them there (``Estimate.innovations``: every built-in path and smoother layout,
+    # the smoother's forward pass being the filter), so each recording is filtered once; a
+    # caller's path without them leaves them to a second pass.
     judge = next((m for m in methods if exact_kinematics(m)), "kckf")
     ests = {}
     if judge in methods:  # its own screening is the data's: the readings judged once
         ests[judge] = filter_sessions(sessions, judge, params, gaps=gaps, smooth=smooth,
                                       path=path, faults=faults,
-                                      innovations=model_of(judge).kalman and not smooth)
+                                      innovations=model_of(judge).kalman)
     found, warnings = data_faults(sessions, params, gaps, judge,
                                   [e.faults for e in ests[judge]] if ests else None, faults)
     if ests:
@@ -209,18 +203,17 @@ def evaluate_sessions(sessions: Sequence[Session], methods: Sequence[str],
         kalman = model_of(m).kalman
         est = ests.get(m) or filter_sessions(sessions, m, params, gaps=gaps,
                                              smooth=smooth and kalman, path=path,
-                                             faults=faults, innovations=kalman and not smooth)
+                                             faults=faults, innovations=kalman)
         angles[m] = [e.angles for e in est]
         out[m] = rmse_table(sessions, angles[m], burn_in_s)
         out[m]["path"] = "+".join(dict.fromkeys(e.path for e in est))
         out[m]["skipped_updates"] = int(sum(np.asarray(e.skipped).sum() for e in est))
         if kalman:
             # (the filter's own pass where it gave them: ``filter_passes`` 1; else a second)
-            innov = None if m in pending else _pass_innovations(est)
+            innov = _pass_innovations(est)
             out[m]["filter_passes"] = 1 if innov is not None else 2
             if innov is None:
-                innov = (pending[m].result() if m in pending else
-                         session_innovations(sessions, m, params, gaps, faults))
+                innov = session_innovations(sessions, m, params, gaps, faults)
             figures, nis_rows[m] = consistency_figures(sessions, m, est, params, gaps, innov)
             out[m].update(figures)
             out[m]["diagnostics"] = diagnostics(sessions, est, innov, params, m,
