@@ -17,6 +17,7 @@ from kckf_jax import (
     Lanes,
     Params,
     Robot,
+    Segments,
     choose_path,
     filter_batch,
     filter_sessions,
@@ -29,18 +30,21 @@ from kckf_jax._models._hall import hall_voltage
 from kckf_jax._models._rotations import link_rates
 
 
+@pytest.mark.parametrize("path", ["sequential", "lanes"])
 @pytest.mark.parametrize(("seed", "spec", "noise"), [
     (0, "xyz,xyz,xyz", "angle"), (1, "x,y,x,y", "voltage"), (2, "xy,z", "angle"),
     (3, "yz,x,xz", "voltage")])
 @pytest.mark.long
-def test_matches_numpy_reference(seed, spec, noise):
-    """Irregular time steps, 10 % missing readings, random parameters: 1e-8 rad."""
+def test_matches_numpy_reference(seed, spec, noise, path):
+    """Irregular time steps, 10 % missing readings, random parameters: 1e-8 rad, on the
+    sequential path and on kckf3d's own lanes step (``_exact_lanes``)."""
     rng = np.random.default_rng(seed)
     robot = Robot.from_spec(spec)
     params = random_params(rng, robot, hall_noise=noise)
     t, gyro, hall_v = random_recording(rng, robot, T=60)
     ref = reference_exact_filter(joints_of(robot), t, gyro, hall_v, reference_params(params))
-    final, est = run_filter(params, make_series(t, gyro, hall_v), "kckf3d")
+    final, est = run_filter(params, make_series(t, gyro, hall_v), "kckf3d", path=path)
+    assert est.path == path
     assert np.abs(ref["angles"]).max() > 0.1  # angles where the rotations matter
     np.testing.assert_allclose(est.angles, ref["angles"], atol=1e-8, rtol=0)
     np.testing.assert_allclose(est.bias, ref["bias"], atol=1e-8, rtol=0)
@@ -149,16 +153,26 @@ def test_exact_data_the_exact_filter_wins_and_torso_is_the_chain(walking):
 
 
 @pytest.mark.long
-def test_paths_say_why_not_and_the_batch_runs_sequential(walking):
+def test_paths_say_why_not_and_the_batch_runs_on_lanes(walking):
+    """``Auto`` takes kckf3d's own lanes step from one trial on; the paths that precompute
+    the linear filters' maps say why not; a fitting loss's policy keeps the sequential path
+    (the lanes step's gradient is JAX's own, slower)."""
     params = Params.paper_defaults(walking[0].robot, dtype=jnp.float64)
     series = pad_series([make_series(s.t[:400], s.gyro[:400], s.hall_v[:400])
                          for s in walking] * 6)
     choice = choose_path(params, series, "kckf3d", Auto())
-    assert choice.path.name == "sequential"
-    for name in ("lanes", "segments", "steady"):
-        assert "depend on the state" in choice.passed_over[name], choice.passed_over
-    with pytest.raises(ValueError, match="lanes.* does not apply: the exact model"):
-        filter_batch(params, series, "kckf3d", Lanes(min_trials=1))
-    one = run_filter(params, jax.tree_util.tree_map(lambda x: x[1], series), "kckf3d")[1]
+    assert choice.path.name == "lanes"
+    assert "depend on the state" in choice.passed_over["steady"], choice.passed_over
+    assert "depend on the state" in Segments().applies(params, series, "kckf3d")
+    one_trial = jax.tree_util.tree_map(lambda x: x[:1], series)
+    assert choose_path(params, one_trial, "kckf3d", Auto()).path.name == "lanes"
+    loss_policy = choose_path(params, series, "kckf3d", Auto().for_loss())
+    assert loss_policy.path.name == "sequential"
+    assert "no reverse pass written by hand" in loss_policy.passed_over["lanes"]
+    with pytest.raises(ValueError, match="lanes.* does not apply: kckf3d's lanes step"):
+        filter_batch(params, series, "kckf3d", Lanes(exact=False))
+    one = run_filter(params, jax.tree_util.tree_map(lambda x: x[1], series), "kckf3d",
+                     path="sequential")[1]
     batch = filter_batch(params, series, "kckf3d")
+    assert batch.path == "lanes"
     np.testing.assert_allclose(batch.angles[1], one.angles, atol=1e-12)

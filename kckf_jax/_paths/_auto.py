@@ -12,6 +12,7 @@ import numpy as np
 from .._models._kernel import Estimate, FilterState, SensorSeries
 from .._models._params import Params
 from ._base import AbstractPath, PathChoice, PathRun, SmootherLayout, is_traced, kalman_only
+from ._exact_lanes import exact_lanes
 from ._lanes import Lanes
 from ._parallel import Parallel
 from ._segments import Segments
@@ -77,10 +78,12 @@ class Auto(AbstractPath):
         than the sequential path's at every batch measured, where a filter run once is done
         sooner on the sequential path below ``Lanes.min_trials`` (the lanes program compiles
         longer; docs/performance.md; the figures: benchmarks/README.md, "Measurements behind
-        the paths' choices"). It keeps
+        the paths' choices"); but not ``kckf3d``'s lanes step, whose gradient is JAX's own
+        and slower than the sequential path's (``Lanes.exact``). It keeps
         every row's state and gains (about 1.1 kB per trial-step with the rows' inputs), so a
         gradient the sequential path would chunk for memory keeps ``lanes`` as it is."""
-        lanes = Lanes(min_trials=1) if gradient and remat_chunk is None else self.lanes
+        lanes = (Lanes(min_trials=1, exact=False) if gradient and remat_chunk is None
+                 else self.lanes)
         return Auto(steady=self.steady, lanes=lanes, segments=None,
                     sequential=Sequential(remat_chunk), before=self.before)
 
@@ -122,11 +125,14 @@ class Auto(AbstractPath):
         n_trials = np.shape(series.dt)[0] if np.ndim(series.dt) > 1 else 1
         n_rows = int(np.shape(series.dt)[-1])
         why = self.lanes.applies(params, series, method, state)
-        if why is None and n_trials >= self.lanes.min_trials:
-            why = self._outweighed(self.lanes, n_trials, n_rows)
+        least = self.lanes.min_trials_for(method)
+        if why is None and n_trials >= least:
+            # (kckf3d's lanes step costs less than its sequential one from one trial on, and
+            # compiles no longer: no compile to weigh; the costs are the linear filters')
+            why = None if exact_lanes(method) else self._outweighed(self.lanes, n_trials, n_rows)
             if why is None:
                 return PathChoice(self.lanes, passed)
-        passed["lanes"] = why or (f"{n_trials} trial(s), fewer than {self.lanes.min_trials}: "
+        passed["lanes"] = why or (f"{n_trials} trial(s), fewer than {least}: "
                                   "lanes pay for batches")
         if self.segments is None:
             passed["segments"] = "not offered here"

@@ -37,6 +37,7 @@ from .._models._kernel import (
 from .._models._params import Params
 from .._readings._prepare import prepare
 from ._base import AbstractPath, PathCost, SmootherLayout, is_traced, kalman_only
+from ._exact_lanes import exact_lanes, exact_lanes_run
 from ._lane_step import _apply, _Consts, _tri, _tri_index, lane_step, pack_tape
 from ._lanes_adjoint import scan_rows
 
@@ -346,17 +347,35 @@ class Lanes(AbstractPath):
             state and the updates' gains (39 numbers per block, row and trial for the bench
             robot, float32: 200 MB for 64 x 10,000 rows); the fitting step is 2x faster with it
             (benchmarks/README.md).
+        exact: whether ``kckf3d`` takes it (its own step on lanes, ``_exact_lanes``; faster
+            than its sequential path from one trial on). Its gradient is JAX's automatic one,
+            slower than the sequential path's: a fitting loss's policy (``Auto.for_loss``)
+            turns it off.
     """
 
     name: ClassVar[str] = "lanes"
     min_trials: int = eqx.field(static=True, default=12)
     remat_chunk: int | None = eqx.field(static=True, default=None)
+    exact: bool = eqx.field(static=True, default=True)
 
     def applies(self, params: Params, series: SensorSeries, method: str,
                 state: FilterState | None = None) -> str | None:
+        if exact_lanes(method):  # kckf3d: its own step on lanes (_exact_lanes)
+            return None if self.exact else (
+                "kckf3d's lanes step has no reverse pass written by hand: a gradient through "
+                "it costs more than through the sequential path (benchmarks/README.md, "
+                "\"Issue 49\")")
         return kalman_only(method)
 
+    def min_trials_for(self, method: str) -> int:
+        """The smallest batch ``Auto`` takes this path for: ``min_trials``; for ``kckf3d`` one
+        trial (its lanes step is faster than its sequential one at every batch measured, and
+        compiles no longer: benchmarks/README.md, "Issue 49")."""
+        return 1 if exact_lanes(method) else self.min_trials
+
     def batch_layout(self, n_trials: int, method: str = "kckf") -> str:
+        if exact_lanes(method):  # the smoother and the likelihood of kckf3d: sequential
+            return "sequential"
         why = kalman_only(method)
         if why is not None:
             raise ValueError(f"the lanes path does not apply: {why}")
@@ -393,9 +412,11 @@ class Lanes(AbstractPath):
 
     def _run(self, params: Params, series: SensorSeries, method: str, state: FilterState,
              innovations: bool) -> tuple[FilterState, Estimate]:
-        st = structure(params.robot, method)
         dtype = state.z.dtype
         series = prepare(params, series, method, dtype)
+        if exact_lanes(method):
+            return exact_lanes_run(params, series, state, innovations)
+        st = structure(params.robot, method)
         start = LaneState(state.z, state.P, state.gyro_hold)
         inputs = lane_inputs(params, st, series.dt, series.gyro, series.hall_v)
         run = (lane_scan_innovations(params, st, start, inputs) if innovations
