@@ -56,8 +56,9 @@ def test_the_entries_are_the_closed_forms(spec):
     (3, "yz,x,xz", "angle")])
 def test_the_lanes_equal_the_sequential_path(seed, spec, noise):
     """Three uneven trials (padded), irregular steps, 10 % missing readings, random
-    parameters, one trial with a 1e100 s step (its noise overflows: the row is skipped): the lanes step's
-    estimates, innovations and final state equal the sequential path's to 1e-12."""
+    parameters, one trial with a 1e100 s step (its noise overflows: the row is skipped):
+    the lanes step's estimates, innovations and final state equal the sequential path's to
+    1e-12."""
     rng = np.random.default_rng(seed)
     robot = kk.Robot.from_spec(spec)
     params = random_params(rng, robot, hall_noise=noise)

@@ -35,8 +35,8 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
 from .._models import _exact
-from .._models._classes import ExactKCKF, model_of
 from .._models._blocks import q_blocks
+from .._models._classes import ExactKCKF, model_of
 from .._models._kalman import fused_pairs
 from .._models._kernel import Estimate, FilterInput, FilterState, hall_measurements
 from .._models._params import Params
