@@ -19,6 +19,8 @@
   its estimate.
 * The floor: a bare Python UDP echo process measured the same way (what the OS, the virtual
   machine's wake-up from idle and Python's socket calls cost without any filtering).
+* Per method: ``push`` and the exported step of ``kckf`` beside ``kckf3d`` on a robot with
+  joints of three axes (``xyz,xyz,xyz``, exact-rotation walking, 1 % missing), in process.
 Simulated bench session (x, y, x, y), float32, async dispatch off (as ``kckf stream`` runs).
 ``--quick``: a smoke run on tiny sizes (the long tests run it): the figures mean nothing.
 """
@@ -138,6 +140,42 @@ def in_process(s, pk, export_path, quick: bool = False) -> dict:
             "step_regular_stream": stats(host_us) | {"fraction_on_host": on_host / len(host_us)},
             "parts": {"jitted_call_floor": stats(floor_us),
                       "step_monitor_off": stats(off_us)}}
+
+
+def per_method(quick: bool = False) -> dict:
+    """Per-packet cost of each Kalman method on a robot with joints of three axes
+    (``xyz,xyz,xyz``; exact-rotation walking, recorded-like: 1 % of readings missing): ``push``
+    of a parsed packet and the exported step's ``push_array`` (its own export), medians over
+    the session's packets, for ``kckf`` beside ``kckf3d`` (issue 49)."""
+    sys.path.insert(0, os.path.dirname(LOADER))
+    import export_loader
+    from kckf_jax.cli import main as kckf
+
+    s = simulate("xyz,xyz,xyz", "walking", seed=5, duration_s=3.0 if quick else 30.0,
+                 drop_prob=0.01, kinematics="exact")
+    tmp = tempfile.mkdtemp(prefix="kckf-bench-methods-")
+    write_session(s, os.path.join(tmp, "s"))
+    params = Params.paper_defaults(s.robot, s.hall_models)
+    parser = PacketParser(s.robot, params=params)
+    parsed = [parser.parse(p) for p in packets(s)]
+    x = np.concatenate([s.gyro, s.hall_v], axis=1)
+    out = {"layout": "xyz,xyz,xyz", "packets": len(parsed)}
+    for method in ("kckf", "kckf3d"):
+        sf = StreamingFilter(params, method)
+        sf.warmup()
+        push_us = _timed(sf.push, parsed)
+        path = os.path.join(tmp, f"{method}.jaxexport")
+        assert kckf(["export", "--meta", os.path.join(tmp, "s", "meta.json"), "-o", path,
+                     "--method", method, "--quiet"]) == 0
+        ex = export_loader.ExportedStep(path)
+        ex.push_array(0.0, x[0])
+        ex.reset()
+        ex_us = _timed(lambda i, ex=ex: ex.push_array(float(s.t[i]), x[i]), range(s.n_steps))
+        out[method] = {"push": stats(push_us), "exported_step": stats(ex_us)}
+    for part in ("push", "exported_step"):
+        out[f"{part}_ratio"] = round(out["kckf3d"][part]["median_us"]
+                                     / out["kckf"][part]["median_us"], 2)
+    return out
 
 
 def _free_port() -> int:
@@ -283,6 +321,7 @@ def main():
     doc = {"benchmark": "stream_latency", "machine": machine(), "date": time.strftime("%Y-%m-%d"),
            "xla_flags": os.environ.get("XLA_FLAGS", ""), "quick": args.quick,
            "in_process": in_process(s, pk, export_path, args.quick),
+           "methods": per_method(args.quick),
            "udp": {} if args.in_process else {
                k: end_to_end(k, pk, session_dir, export_path, args.quick)
                for k in ("kckf stream", "exported step", "echo (floor)")}}
@@ -299,6 +338,10 @@ def main():
         extra = (f", on the host path {v['fraction_on_host']:.0%} of packets"
                  if "fraction_on_host" in v else "")
         print(f"in process, {k}: median {v['median_us']} us, p99 {v['p99_us']} us{extra}")
+    pm = doc["methods"]
+    for m in ("kckf", "kckf3d"):
+        print(f"in process, {pm['layout']}, {m}: push median {pm[m]['push']['median_us']} us, "
+              f"exported step median {pm[m]['exported_step']['median_us']} us")
     for kind, d in doc["udp"].items():
         for rate in ("100_hz", "1000_hz"):
             print(f"{kind}, UDP loopback at {rate}: median {d[rate]['median_us']} us, p99 "

@@ -166,9 +166,12 @@ def test_paths_say_why_not_and_the_batch_runs_on_lanes(walking):
     assert "depend on the state" in Segments().applies(params, series, "kckf3d")
     one_trial = jax.tree_util.tree_map(lambda x: x[:1], series)
     assert choose_path(params, one_trial, "kckf3d", Auto()).path.name == "lanes"
-    loss_policy = choose_path(params, series, "kckf3d", Auto().for_loss())
-    assert loss_policy.path.name == "sequential"
-    assert "no reverse pass written by hand" in loss_policy.passed_over["lanes"]
+    for chunk in (None, 100):  # a gradient chunked for memory too
+        loss_policy = choose_path(params, series, "kckf3d", Auto().for_loss(chunk))
+        assert loss_policy.path.name == "sequential"
+        assert "no reverse pass written by hand" in loss_policy.passed_over["lanes"]
+    validation = choose_path(params, series, "kckf3d", Auto().for_loss(gradient=False))
+    assert validation.path.name == "lanes"  # no gradient: the faster forward pass
     with pytest.raises(ValueError, match="lanes.* does not apply: kckf3d's lanes step"):
         filter_batch(params, series, "kckf3d", Lanes(exact=False))
     one = run_filter(params, jax.tree_util.tree_map(lambda x: x[1], series), "kckf3d",
