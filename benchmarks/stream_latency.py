@@ -149,6 +149,7 @@ def per_method(quick: bool = False) -> dict:
     the session's packets, for ``kckf`` beside ``kckf3d`` (issue 49)."""
     sys.path.insert(0, os.path.dirname(LOADER))
     import export_loader
+
     from kckf_jax.cli import main as kckf
 
     s = simulate("xyz,xyz,xyz", "walking", seed=5, duration_s=3.0 if quick else 30.0,
