@@ -18,7 +18,7 @@ from helpers import series_of as make_series
 import kckf_jax as kk
 from kckf_jax._models import _exact
 from kckf_jax._models._classes import init_states
-from kckf_jax._paths._exact_lanes import joint_rate_entries, torso_jacobian_entries
+from kckf_jax._models._exact_entries import joint_rate_entries, torso_entries
 
 
 @pytest.mark.parametrize("spec", ["xyz,xyz,xyz", "x,y,x,y", "xy,z", "yz,x,xz", "zx,zyx"])
@@ -43,7 +43,7 @@ def test_the_entries_are_the_closed_forms(spec):
                 got = np.array([[np.broadcast_to(np.asarray(x, float), (B,))[b] for x in row]
                                 for row in (got if isinstance(got[0], list) else [got])])
                 np.testing.assert_allclose(got.reshape(np.shape(ref)), ref, atol=1e-12)
-    C = torso_jacobian_entries(model, [jnp.asarray(theta[k]) for k in range(model.J)])
+    _, C = torso_entries(model, [jnp.asarray(theta[k]) for k in range(model.J)])
     for b in range(B):
         _, want = _exact.torso_angles_jacobian(model, jnp.asarray(theta[:, b]))
         got = np.array([[np.broadcast_to(np.asarray(x, float), (B,))[b] for x in row]
