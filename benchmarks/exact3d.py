@@ -6,8 +6,9 @@ recorded-like trials, one fitting step, one trial, and an hour in float32.
 Data: the project's simulator, exact-rotation walking of the 3D layout ``xyz,xyz,xyz``,
 recorded-like (jittered stamps, 1 % of readings missing, the voltage noise model of
 ``FitConfig()``'s initial parameters), float32. Each filter on the path ``Auto`` chooses
-(the linear KCKF: lanes; ``kckf3d``: sequential, a ``vmap`` of the one-trial scan, as
-``Auto`` says). Times: compile and first call, then the median of three calls. The fitting
+(the linear KCKF: lanes for the batch, sequential for one trial; ``kckf3d``: its own lanes
+step for both, and the sequential path in the fitting step's gradient), named in the
+output. Times: compile and first call, then the median of three calls. The fitting
 step is ``fit``'s own (RMSE loss, gradient, Adam update; 4 steps, the first compiles; the
 median of the other 3). ``--hour``: one hour of walking in float32 and float64: finite, the
 covariance's smallest eigenvalue, the largest float32 - float64 difference and the RMSE.
