@@ -176,6 +176,7 @@ def test_auto_takes_segments_for_long_recordings_only():
     batch = Batch(jax.tree_util.tree_map(lambda x: x[None], s32),
                   jnp.zeros((1, 40_000, robot.n_angles), jnp.float32),
                   jnp.ones((1, 40_000, robot.n_angles), bool))
-    assert rmse_loss(p32, batch, "kckf", None).path == Lanes(min_trials=1)
+    # (a gradient's lanes, not kckf3d's own lanes step: its gradient is the sequential one's)
+    assert rmse_loss(p32, batch, "kckf", None).path == Lanes(min_trials=1, exact=False)
     assert rmse_loss(p32, batch, "kckf", 200).path == Sequential(200)
     assert rmse_loss(p32, batch, "kckf", None, gradient=False).path == Sequential()
