@@ -185,10 +185,25 @@ def test_cli_fit_then_filter_and_evaluate_with_params(tmp_path, capsys):
                      "x,y", "--quiet"]) == 0
         sessions.append(path)
     out = str(tmp_path / "p.json")
+    figs = str(tmp_path / "figs")
     assert main(["fit", sessions[0], "--val", sessions[1], "-o", out, "--steps", "4",
-                 "--quiet"]) == 0
+                 "--plot", figs, "--quiet"]) == 0
     summary = json.loads(capsys.readouterr().out)
     assert summary["params"] == out and summary["selected_on"] == "val"
+    # The fit's progress: every step's training loss, the validation loss where computed
+    # (the first and last steps at least), and the figure of both.
+    prog = summary["progress"]
+    assert prog["unit"] == "deg" and prog["updates"] == list(range(summary["steps_done"]))
+    assert len(prog["train"]) == len(prog["val"]) == 4
+    assert all(x > 0 for x in prog["train"]) and prog["val"][0] is not None
+    assert prog["val"][-1] is not None
+    # The kept parameters: the best validation loss scored, here or after the last update.
+    scored = {u: v for u, v in zip(prog["updates"], prog["val"]) if v is not None}
+    assert summary["best_rmse_deg"] <= min(scored.values()) + 1e-9
+    if summary["best_step"] in scored:
+        assert summary["best_rmse_deg"] == pytest.approx(scored[summary["best_step"]])
+    with open(os.path.join(figs, "fit_progress.png"), "rb") as f:
+        assert f.read(8) == b"\x89PNG\r\n\x1a\n"
     assert not os.path.exists(out + ".ckpt")
     assert main(["evaluate", sessions[1], "--params", out, "--json"]) == 0
     doc = json.loads(capsys.readouterr().out)

@@ -278,9 +278,26 @@ def cmd_fit(args) -> int:
                best: result.best_loss_deg, "selected_on": "val" if val else "train",
                "steps_done": result.steps_done, "stopped_early": result.stopped_early,
                "seconds": round(result.seconds, 2), "smoothed": config.smooth,
-               "learned": list(config.learn)}
+               "learned": list(config.learn), "progress": fit_progress(result)}
+    if args.plot:
+        from .plots import plot_fit_progress
+
+        path = plot_fit_progress(summary["progress"], result.best_step,
+                                 os.path.join(args.plot, "fit_progress.png"))
+        _say(args, f"the fit's progress in {path}")
     print(json.dumps(summary))
     return 0
+
+
+def fit_progress(result) -> dict:
+    """The fit's loss by step (``FitResult.history``) for the JSON and the figure: for the
+    parameters after ``updates`` updates (the count ``best_step`` gives for the ones kept),
+    ``train`` (the training loss on that step's batch) and ``val`` (the validation loss where
+    it was computed, else ``None``), in ``unit``."""
+    unit = result.unit
+    return {"unit": unit, "updates": [r["step"] - 1 for r in result.history],
+            "train": [r[f"loss_{unit}"] for r in result.history],
+            "val": [r.get(f"val_{unit}") for r in result.history]}
 
 
 def cmd_stream(args) -> int:

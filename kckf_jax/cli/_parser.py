@@ -196,6 +196,9 @@ def build_parser(commands: Mapping[str, Callable], demo_steps: int) -> argparse.
                        "gradient descent (--loss: the RMSE against motion capture, the Hall "
                        "readings' likelihood, or both)")
     t.add_argument("sessions", nargs="+", metavar="SESSION")
+    t.add_argument("--plot", metavar="DIR",
+                   help="write the fit's progress to DIR/fit_progress.png (the loss by step, "
+                        "train and validation, the chosen step marked)")
     _dtype_option(t, "the fit's arithmetic (float64: to check a fit to rounding)")
     t.add_argument("-o", "--output", required=True, help="parameter file to write (JSON)")
     t.add_argument("--val", nargs="+", metavar="SESSION",

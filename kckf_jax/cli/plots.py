@@ -311,6 +311,43 @@ def plot_drift(t: np.ndarray, errors_deg: Mapping[str, np.ndarray], path: str,
     return path
 
 
+def plot_fit_progress(progress: Mapping, best_step: int, path: str) -> str:
+    """A fit's progress (``kckf fit --plot``): each step's training loss and the validation
+    loss where it was computed, the step whose parameters were kept marked; log scale where
+    every loss is positive (RMSE), linear otherwise (a likelihood).
+
+    Args:
+        progress: the ``"progress"`` entry of ``kckf fit``'s JSON (``updates``, ``train``,
+            ``val``, ``unit``).
+        best_step: the updates of the parameters that were kept (``best_step``).
+        path: the PNG to write (its folder is created if needed).
+    """
+    plt = _plt()
+    os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
+    step = np.asarray(progress["updates"], np.float64)
+    train = np.asarray(progress["train"], np.float64)
+    val = np.array([np.nan if v is None else v for v in progress["val"]], np.float64)
+    fig, ax = plt.subplots(figsize=(7, 3.4))
+    ax.plot(step, train, "-", color="C0", lw=1.2, label="train (each step's batch)")
+    has_val = np.isfinite(val)
+    if has_val.any():
+        ax.plot(step[has_val], val[has_val], "o-", color="C3", ms=3, lw=1, label="validation")
+    ax.axvline(best_step, color="0.3", ls="--", lw=1, label=f"kept: step {best_step}")
+    losses = np.concatenate([train, val[has_val]])
+    if losses.size and (losses > 0).all():
+        ax.set_yscale("log")
+    unit = progress["unit"].replace("_plus_", " + ")
+    ax.set_xlabel("updates (fitting steps)")
+    ax.set_ylabel(f"loss ({unit})")
+    ax.set_title("kckf fit: the loss by step", fontsize=10)
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    _save(fig, path)
+    plt.close(fig)
+    return path
+
+
 def plot_diagnostics(diag: Mapping, path: str, title: str = "") -> str:
     """Where a Kalman filter's error comes from (docs/diagnostics.md), one figure: above,
     each innovation channel's autocorrelation at lags ``1..k`` against its 95 % band (a
