@@ -50,6 +50,7 @@ from ._blocks import (
     static_take,
 )
 from ._custom_types import BlockCov, BlockHall, BlockRates, BlockState, BlockValid
+from ._exact_entries import entry_estimate, entry_step
 from ._hall import hall_angle, hall_slope
 from ._kalman import coordinate_update, fused_pairs, symmetrise
 from ._params import Params
@@ -323,19 +324,34 @@ class StepMoments(eqx.Module):
     F: Float[Array, "*T Nb Ny Nz"] | None = None
 
 
-def exact_parts(params: Params, state: FilterState, inputs: FilterInput):
-    """One ``kckf3d`` step (``_exact.exact_step``) laid out as one block (``Nb = 1``)."""
+def exact_parts(params: Params, state: FilterState, inputs: FilterInput,
+                entries: bool = False):
+    """One ``kckf3d`` step (``_exact.exact_step``) laid out as one block (``Nb = 1``);
+    ``entries``: computed entry by entry on one lane (``_exact_entries.entry_step``: the
+    stream's forward-only step; its ``S`` and ``F`` are not formed, ``None``)."""
     dtype = state.z.dtype
     model = _exact.exact_model(params.robot)
     dt = inputs.dt.astype(dtype)
     noise = ProcessNoise(*q_blocks(params.q, params.angle_rw, params.bias_rw, dt))
     bias_q, bias_rw2, _ = _exact.gyro_bias_noise(model, params.q, params.bias_rw, params.p0_bias)
     h, rh, vh = fused_pairs(*hall_measurements(params, inputs.hall_v.astype(dtype)))
+    if entries:
+        q = jnp.concatenate([noise[0][:model.J], bias_q * dt**2 + bias_rw2 * dt])
+        z, P, nu, s = (x[..., 0] for x in entry_step(
+            model, state.z[0][:, None], state.P[0][..., None], state.gyro_hold[:, None],
+            dt[None], h[:, None], rh[:, None], vh[:, None], q[:, None]))
+        return z[None], P[None], None, None, None, nu[None], s[None], vh[None], dt
     z, P, y, S, F, nu, s = _exact.exact_step(model, state.z[0], state.P[0], state.gyro_hold,
                                              noise, bias_q, bias_rw2, h, rh, vh, dt)
     return z[None], P[None], y[None], S[None], F[None], nu[None], s[None], vh[None], dt
 
 
-def exact_block_estimate(robot, z: BlockState, P: BlockCov) -> Estimate:
-    """``kckf3d``'s estimate from its one-block state (``_exact.exact_estimate``)."""
-    return Estimate(*_exact.exact_estimate(_exact.exact_model(robot), z[0], P[0]))
+def exact_block_estimate(robot, z: BlockState, P: BlockCov, entries: bool = False
+                         ) -> Estimate:
+    """``kckf3d``'s estimate from its one-block state (``_exact.exact_estimate``; ``entries``:
+    entry by entry on one lane, ``_exact_entries.entry_estimate``)."""
+    model = _exact.exact_model(robot)
+    if entries:
+        return Estimate(*(x[..., 0] for x in entry_estimate(model, z[0][:, None],
+                                                            P[0][..., None])))
+    return Estimate(*_exact.exact_estimate(model, z[0], P[0]))

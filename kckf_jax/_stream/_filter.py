@@ -16,7 +16,7 @@ from .._models._classes import (
     exact_kinematics,
     init_state,
     method_name,
-    step,
+    model_of,
     structure,
 )
 from .._models._hall import hall_exponentials
@@ -415,7 +415,8 @@ def stream_step_fn(params: Params, method: str, health: bool = False):
             gyro, hall_v, codes = by_policy(p.faults, used, watched)
             inputs = ScreenedSeries(inputs.dt, gyro, hall_v)  # judged: not screened again
         state, row = prepare_row(p, state, inputs, method)
-        new, est = step(p, state, row, method)  # a non-finite update keeps the state
+        # (the model's forward-only form: ``packet_step``; a non-finite update keeps the state)
+        new, est = model_of(method).packet_step(p, state, row)
         ok = ~est.skipped
         out = [est.angles, est.angle_std, ok[None].astype(x.dtype)]
         if health:
