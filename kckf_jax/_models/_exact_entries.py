@@ -16,10 +16,10 @@ entry at a time, each entry an array over the lanes (the trials of a batch,
 * the estimate: the torso angles and their Jacobian ``C`` from the chain's rotations
   (``torso_entries``: ``chain_rotation_axes`` and ``euler_xyz_jacobian``' closed forms).
 
-The lanes path runs it over a batch (``_paths/_exact_lanes``); the model's own step (the
-sequential path, the stream, the export, the smoother) stays ``_exact``'s matrix form, whose
-gradient JAX takes about five times faster than this form's (benchmarks/README.md, "Issue
-49"). The two forms are held to each other and to the NumPy reference by
+The lanes path runs it over a batch (``_paths/_exact_lanes``), the stream and the exported
+step on one lane (``ExactKCKF.packet_step``). The model's ``step`` (the sequential path, the
+smoother, the fit) stays ``_exact``'s matrix form, whose gradient JAX takes about five times
+faster than this form's (benchmarks/README.md, "Issue 49"). The two forms are held to each other and to the NumPy reference by
 tests/test_exact_lanes.py and tests/test_exact.py.
 """
 
