@@ -19,8 +19,8 @@ entry at a time, each entry an array over the lanes (the trials of a batch,
 The lanes path runs it over a batch (``_paths/_exact_lanes``), the stream and the exported
 step on one lane (``ExactKCKF.packet_step``). The model's ``step`` (the sequential path, the
 smoother, the fit) stays ``_exact``'s matrix form, whose gradient JAX takes about five times
-faster than this form's (benchmarks/README.md, "Issue 49"). The two forms are held to each other and to the NumPy reference by
-tests/test_exact_lanes.py and tests/test_exact.py.
+faster than this form's (benchmarks/README.md, "Issue 49"). The two forms are held to each
+other and to the NumPy reference by tests/test_exact_lanes.py and tests/test_exact.py.
 """
 
 from __future__ import annotations
