@@ -90,6 +90,7 @@ def test_the_lanes_equal_the_sequential_path(seed, spec, noise):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), atol=1e-12)
 
 
+@pytest.mark.long
 def test_float32_recorded_like_walking_stays_stable():
     """Five minutes of exact-rotation walking (recorded-like: jittered stamps, 1 % missing,
     the voltage noise), float32, 4 trials on lanes: finite, the final covariances symmetric
