@@ -274,6 +274,15 @@ def gyro_bias_noise(model: ExactModel, q, bias_rw, p0_bias):
     return (share @ q[:J] / 2, share @ bias_rw[:J] ** 2 / 2, share @ p0_bias[:J] ** 2 / 2)
 
 
+def process_noise_diagonal(model: ExactModel, alpha, bias_q, bias_rw2, dt):
+    """The process noise of ``z = [theta, beta]`` (diagonal, ``... Nz``) over a step ``dt``
+    (any leading axes, as ``alpha``'s): each joint coordinate's Eq. 13 angle variance
+    (``alpha``, per angle: its first ``J``), each bias channel's ``bias_q dt^2 + bias_rw2 dt``
+    (``gyro_bias_noise``)."""
+    dt = jnp.asarray(dt)[..., None]
+    return jnp.concatenate([alpha[..., :model.J], bias_q * dt**2 + bias_rw2 * dt], axis=-1)
+
+
 def predicted_moments(model: ExactModel, z: Float[Array, " Nz"], P: Float[Array, "Nz Nz"],
                       gyro: Float[Array, " G"], noise: ProcessNoise, bias_q, bias_rw2,
                       dt: Float[Array, ""]):
@@ -292,8 +301,7 @@ def predicted_moments(model: ExactModel, z: Float[Array, " Nz"], P: Float[Array,
     B = -dt * (Dg @ sel)  # d theta' / d beta
     nb = beta.shape[0]
     F = jnp.block([[A, B], [jnp.zeros((nb, J), dtype), jnp.eye(nb, dtype=dtype)]])
-    alpha = noise[0][:J]
-    q = jnp.concatenate([alpha, bias_q * dt**2 + bias_rw2 * dt])
+    q = process_noise_diagonal(model, noise[0], bias_q, bias_rw2, dt)
     S = F @ P @ F.T + q[:, None] * jnp.eye(q.shape[0], dtype=dtype)
     return jnp.concatenate([theta + dt * u, beta]), symmetrise(S), F
 

@@ -336,7 +336,7 @@ def exact_parts(params: Params, state: FilterState, inputs: FilterInput,
     bias_q, bias_rw2, _ = _exact.gyro_bias_noise(model, params.q, params.bias_rw, params.p0_bias)
     h, rh, vh = fused_pairs(*hall_measurements(params, inputs.hall_v.astype(dtype)))
     if entries:
-        q = jnp.concatenate([noise[0][:model.J], bias_q * dt**2 + bias_rw2 * dt])
+        q = _exact.process_noise_diagonal(model, noise[0], bias_q, bias_rw2, dt)
         z, P, nu, s = (x[..., 0] for x in entry_step(
             model, state.z[0][:, None], state.P[0][..., None], state.gyro_hold[:, None],
             dt[None], h[:, None], rh[:, None], vh[:, None], q[:, None]))

@@ -65,17 +65,15 @@ class ExactLaneRows(NamedTuple):
 def exact_lane_inputs(params: Params, model: _exact.ExactModel, series: FilterInput
                       ) -> ExactLaneInputs:
     """The rows of a batch (``series`` prepared, leading axis ``B``) laid out for the scan."""
-    J = model.J
     dtype = params.log_q.dtype
     angle, r, valid = jax.vmap(jax.vmap(lambda v: hall_measurements(params, v)))(
         series.hall_v.astype(dtype))
     h, rh, vh = jax.vmap(jax.vmap(fused_pairs))(angle, r, valid)
     dt = series.dt.astype(dtype)
-    alpha = q_blocks(params.q, params.angle_rw, params.bias_rw, dt[..., None])[0][..., :J]
+    alpha = q_blocks(params.q, params.angle_rw, params.bias_rw, dt[..., None])[0]
     bias_q, bias_rw2, _ = _exact.gyro_bias_noise(model, params.q, params.bias_rw,
                                                  params.p0_bias)
-    q = jnp.concatenate([alpha, bias_q * dt[..., None] ** 2 + bias_rw2 * dt[..., None]],
-                        axis=-1)
+    q = _exact.process_noise_diagonal(model, alpha, bias_q, bias_rw2, dt)
 
     def lanes(x):  # (B, T, ...) -> (T, ..., B)
         return jnp.moveaxis(x, 0, -1)
@@ -93,8 +91,7 @@ def exact_lane_scan(model: _exact.ExactModel, z0: Float[Array, "B Nz"],
     @jax.checkpoint
     def body(carry, row: ExactLaneInputs):
         z, P, hold = carry
-        zn, Pn, nu, s = entry_step(model, z, P, hold, row.ts, row.h, row.rh, row.vh,
-                                        row.q)
+        zn, Pn, nu, s = entry_step(model, z, P, hold, row.ts, row.h, row.rh, row.vh, row.q)
         fin = jnp.isfinite(zn).all(axis=0) & jnp.isfinite(Pn).all(axis=(0, 1))
         zn = jnp.where(fin[None], zn, z)
         Pn = jnp.where(fin[None, None], Pn, P)
