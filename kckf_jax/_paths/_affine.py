@@ -93,11 +93,12 @@ class InnovationMaps(NamedTuple):
     s: Float[Array, "*R Nb m"]
 
 
-def innovation_maps(st: Structure, P: Float[Array, "Nb Nz Nz"], row: BlockInputs
+def innovation_maps(st: Structure, P: Float[Array, "R Nb Nz Nz"], rows: BlockInputs
                     ) -> InnovationMaps:
-    """How a row's fused Hall innovations follow from its result, for the entering covariance
-    ``P``: the paths that compute the mean as affine maps (steady, parallel) never form the
-    prediction, but they have the new state, and that is enough.
+    """How each row's fused Hall innovations follow from its result, for its entering
+    covariance (``P``, a leading row axis as ``rows``'): the paths that compute the mean as
+    affine maps (steady, parallel) never form the prediction, but they have the new state, and
+    that is enough.
 
     The kernel updates the joints one by one (``block_step``): ``nu_i = hb_i - z^(i)_i``, then
     ``z^(i+1) = z^(i) + K_i nu_i``. So the residual after the row, ``hb - z_new[:m]``, is
@@ -107,9 +108,8 @@ def innovation_maps(st: Structure, P: Float[Array, "Nb Nz Nz"], row: BlockInputs
     of ``nu`` (``Nh``) and of ``z_new[:m]`` (``C Gh``), taken of the kernel's own step (no
     second implementation of it)."""
     nz, m1, m = st.n_z, st.m + 1, st.m
-    dt = row.dt
 
-    def one_block(P, alpha, beta, gamma, rb, vb):
+    def one_block(P, alpha, beta, gamma, rb, vb, dt):
         z0, r0 = jnp.zeros(nz, P.dtype), jnp.zeros(m1, P.dtype)
 
         def f(h):
@@ -121,21 +121,26 @@ def innovation_maps(st: Structure, P: Float[Array, "Nb Nz Nz"], row: BlockInputs
         W = jnp.linalg.solve((jnp.eye(m, dtype=P.dtype) - CGh).T, Nh.T).T
         return W, s
 
-    return InnovationMaps(*jax.vmap(one_block)(P, *row.noise, row.rb, row.vb))
+    def one_row(P, row):
+        return jax.vmap(lambda *a: one_block(*a, row.dt))(P, *row.noise, row.rb, row.vb)
+
+    return InnovationMaps(*jax.vmap(one_row)(P, rows))
 
 
 def read_innovations(params: Params, st: Structure, maps: InnovationMaps,
-                     hall_v: Float[Array, "*B T M"], joints: Float[Array, "*B T Nb m"]
+                     hall_v: Float[Array, "*B T M"], joints: Float[Array, "*B T Nb m"],
+                     ok: Bool[Array, " T"]
                      ) -> tuple[Float[Array, "*B T Nb m"], Float[Array, "*B T Nb m"],
                                 Bool[Array, "*B T Nb m"]]:
     """Every row's fused Hall innovations ``(nu, s, valid)`` from its new joint angles
     (``joints``: ``z_new[:m]`` per block, 0 at a padding joint) and its Hall voltages, with
-    ``maps`` per row (a row axis ``T``) or one map for every row: ``innovation_maps``."""
+    ``maps`` per row (a row axis ``T``: ``innovation_maps``); a row not computed (``ok``
+    false: ``covariance_phase``'s skipped rows) uses none of its readings."""
     hb, _, vb = jax.vmap(lambda v: block_hall(params, st, v, in_loop=False))(
         hall_v.reshape(-1, hall_v.shape[-1]))
     hb, vb = hb.reshape(joints.shape), vb.reshape(joints.shape)
     nu = jnp.einsum("...pij,...pj->...pi", maps.W, hb - joints)
-    return nu, jnp.broadcast_to(maps.s, nu.shape), vb
+    return nu, jnp.broadcast_to(maps.s, nu.shape), vb & ok[:, None, None]
 
 
 def covariance_phase(params: Params, st: Structure, P0: Float[Array, "Nb Nz Nz"],

@@ -69,9 +69,8 @@ def _one_trial(params: Params, series: SensorSeries, method: str, state: FilterS
                               skipped=~ok)
     if innovations:
         P_in = jnp.concatenate([state.P[None], Ps[:-1]])
-        maps = jax.vmap(lambda P, row: innovation_maps(st, P, row))(P_in, rows)
-        nu, s, valid = read_innovations(params, st, maps, series.hall_v, z[..., : st.m])
-        est = dataclasses.replace(est, innovations=(nu, s, valid & ok[:, None, None]))
+        est = dataclasses.replace(est, innovations=read_innovations(
+            params, st, innovation_maps(st, P_in, rows), series.hall_v, z[..., : st.m], ok))
     return FilterState(z[-1], P_last, held[-1]), est
 
 

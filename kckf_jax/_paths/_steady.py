@@ -242,13 +242,11 @@ class Steady(AbstractPath):
         n_head = form.head.A.shape[0]
         T = series.dt.shape[1]
         P_in = jnp.concatenate([state.P[:1], form.head.P])  # entering rows 0 .. n_head
-        maps = jax.vmap(lambda P, row: innovation_maps(st, P, row))(P_in, form.rows)
         maps = jax.tree_util.tree_map(
             lambda x: jnp.concatenate([x[:n_head], jnp.broadcast_to(
-                x[n_head], (T - n_head,) + x.shape[1:])]), maps)
-        nu, s, valid = read_innovations(params, st, maps, series.hall_v, joints)
+                x[n_head], (T - n_head,) + x.shape[1:])]), innovation_maps(st, P_in, form.rows))
         ok = jnp.concatenate([form.head.ok, jnp.ones(T - n_head, bool)])
-        return nu, s, valid & ok[:, None, None]
+        return read_innovations(params, st, maps, series.hall_v, joints, ok)
 
     def _mean(self, params: Params, st: Structure, series: SensorSeries,
              z0: Float[Array, "B Nb Nz"], hold0: Float[Array, "B G"], form: SteadyForm
