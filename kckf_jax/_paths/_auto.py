@@ -83,10 +83,9 @@ class Auto(AbstractPath):
         and slower than the sequential path's (``Lanes.exact``). It keeps
         every row's state and gains (about 1.1 kB per trial-step with the rows' inputs), so a
         gradient the sequential path would chunk for memory keeps ``lanes`` as it is."""
-        if gradient and remat_chunk is None:
-            lanes = Lanes(min_trials=1, exact=False)
-        else:
-            lanes = dataclasses.replace(self.lanes, exact=False) if gradient else self.lanes
+        lanes = Lanes(min_trials=1) if gradient and remat_chunk is None else self.lanes
+        if gradient:
+            lanes = dataclasses.replace(lanes, exact=False)
         return Auto(steady=self.steady, lanes=lanes, segments=None,
                     sequential=Sequential(remat_chunk), before=self.before)
 
