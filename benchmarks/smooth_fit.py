@@ -61,7 +61,8 @@ def one(sessions, smooth: bool, learn: tuple[str, ...], steps: int = 4) -> dict:
         callback=lambda r: stamps.append(time.perf_counter()))
     times = np.diff(stamps)
     return {"smooth": smooth, "path": path.name,
-            "smoother_under_gradient": "sequential" if smooth else None,
+            "smoother_under_gradient": (path.batch_layout(len(sessions), "kckf") if smooth
+                                        else None),
             "compile_and_first_s": round(stamps[0] - t0, 2),
             "step_s_median": round(float(np.median(times)), 3),
             "step_s_all": [round(float(t), 3) for t in times],

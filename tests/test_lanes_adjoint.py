@@ -1,5 +1,6 @@
 """The lanes filter's hand-written reverse pass (``_paths/_lanes_adjoint.py``) against JAX's
-automatic one (``Lanes(remat_chunk=...)`` keeps it) and against finite differences.
+automatic one (``Lanes(remat_chunk=...)`` keeps it) and against finite differences; and the
+lanes smoother's gradient, which takes it for its forward pass.
 
 Recorded-like data throughout: jittered time steps, 5 % missing readings per channel, the
 voltage noise model, padded trials of uneven length and one overflowing update (a skipped row,
@@ -14,8 +15,18 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from kckf_jax import Lanes, Params, Robot, SensorSeries, filter_batch, pad_series, simulate
-from kckf_jax._models._classes import init_states
+from kckf_jax import (
+    Lanes,
+    Params,
+    Robot,
+    SensorSeries,
+    filter_batch,
+    pad_series,
+    simulate,
+    smooth_batch,
+)
+from kckf_jax._models._classes import init_states, structure
+from kckf_jax._paths._lanes import LaneMoments, LaneState, _lane_loop, lane_inputs
 from kckf_jax._paths._likelihood import hall_nll
 
 AUTOMATIC = Lanes(remat_chunk=40)  # chunked checkpoints: JAX's own transpose of the step
@@ -154,3 +165,79 @@ def test_likelihood_gradient_equals_the_sequential_one_float64(method):
     data = eqx.filter_jit(jax.grad(lambda b, path: hall_nll(params, b, method, path=path)))
     (d0, d1) = data(batch, "lanes"), data(batch, "sequential")  # through the states and held rates
     assert_close((d0.dt, d0.gyro, d0.hall_v), (d1.dt, d1.gyro, d1.hall_v), 1e-9)
+
+
+def smoothed_loss(params, batch, path, method="kckf"):
+    """Every output of the smoothed estimate."""
+    est = smooth_batch(params, batch, method, path=path)
+    return (jnp.nansum(est.angles**2) + 0.3 * jnp.nansum(est.angle_std)
+            + jnp.nansum(jnp.sin(est.bias)))
+
+
+def moments_loss(params, batch, remat_chunk):
+    """Every row the smoother's forward pass keeps (``LaneMoments``: the filtered state and
+    covariance, the predicted ``y`` and ``S``), weighted: through the hand-written reverse pass
+    (``remat_chunk=None``) or JAX's own (chunked checkpoints)."""
+    st = structure(params.robot, "kckf")
+    state = init_states(params, "kckf", batch.dt.shape[0])
+    inputs = lane_inputs(params, st, batch.dt, batch.gyro, batch.hall_v)
+    rows = _lane_loop(params, st, LaneState(state.z, state.P, state.gyro_hold), inputs,
+                      LaneMoments, remat_chunk, None).rows
+    w = [jnp.cos(jnp.arange(x.size, dtype=x.dtype).reshape(x.shape)) for x in
+         (rows.z, rows.P, rows.y, rows.S)]
+    return sum(jnp.sum(a * b) for a, b in zip(w, (rows.z, rows.P, rows.y, rows.S)))
+
+
+@pytest.mark.parametrize("spec", ["x,y,x,y", "xz,y,xyz"])
+def test_smoothers_forward_pass_gradient_equals_the_automatic_one_float64(spec):
+    """The predicted moments' cotangents (``LaneMoments.y``, ``.S``) join the filter's: the
+    parameters, the time steps and the gyro readings against JAX's own reverse pass."""
+    params, batch = recorded_like(spec, overflow=False)
+    grad = eqx.filter_jit(eqx.filter_grad(moments_loss))
+    assert_close(grad(params, batch, None), grad(params, batch, 40), 1e-10)
+    by_data = jax.jit(jax.grad(lambda b, chunk: moments_loss(params, b, chunk)),
+                      static_argnums=1)
+    d0, d1 = by_data(batch, None), by_data(batch, 40)
+    assert_close((d0.dt, d0.gyro, d0.hall_v), (d1.dt, d1.gyro, d1.hall_v), 1e-10)
+    assert np.abs(np.asarray(d0.dt)).max() > 0 and np.abs(np.asarray(d0.gyro)).max() > 0
+
+
+@pytest.mark.parametrize("method", ["kckf", "kf"])
+def test_smoothed_gradient_equals_the_sequential_one(method):
+    """The lanes smoother under reverse mode (the filter's hand-written pass, the gains formed
+    for every row at once) against the vmapped sequential smoother's automatic gradient."""
+    params, batch = recorded_like("x,y,x,y", overflow=False)
+    grad = eqx.filter_jit(eqx.filter_value_and_grad(smoothed_loss))
+    (v0, g0), (v1, g1) = (grad(params, batch, "lanes", method),
+                          grad(params, batch, "sequential", method))
+    assert float(v0) == pytest.approx(float(v1), rel=1e-9)  # the smoothers' own rounding
+    assert_close(g0, g1, 1e-8)
+    # The data too: the gains' derivative in the time steps, the held gyro rates.
+    data = eqx.filter_jit(jax.grad(lambda b, path: smoothed_loss(params, b, path, method)))
+    d0, d1 = data(batch, "lanes"), data(batch, "sequential")
+    assert_close((d0.dt, d0.gyro, d0.hall_v), (d1.dt, d1.gyro, d1.hall_v), 1e-8)
+
+
+def test_smoothed_gradient_with_a_skipped_row_equals_finite_differences_float64():
+    """Central differences of the smoothed loss on lanes along a random direction, with the
+    overflowing row skipped. Its non-finite moments reach no derivative (the sequential
+    smoother's automatic gradient is NaN in every leaf here); only ``log_q``'s is NaN, as the
+    filter's: the row's process noise itself overflows (left out of the direction)."""
+    params, batch = recorded_like("x,y,x,y")
+    assert np.asarray(smooth_batch(params, batch, path="lanes").skipped)[1, 50]
+    diff, static = eqx.partition(params, eqx.is_inexact_array)
+    rng = np.random.default_rng(2)
+    direction = jax.tree_util.tree_map(lambda x: jnp.asarray(rng.normal(size=x.shape)), diff)
+    direction = eqx.tree_at(lambda p: p.log_q, direction, jnp.zeros_like(diff.log_q))
+    f = jax.jit(lambda d: smoothed_loss(eqx.combine(d, static), batch, "lanes"))
+
+    def along(h):
+        return float(f(jax.tree_util.tree_map(lambda x, d: x + h * d, diff, direction)))
+
+    g = jax.jit(jax.grad(lambda d: smoothed_loss(eqx.combine(d, static), batch, "lanes")))(diff)
+    g = eqx.tree_at(lambda p: p.log_q, g, jnp.zeros_like(g.log_q))
+    assert all(np.isfinite(np.asarray(x)).all() for x in leaves(g))
+    exact = sum(float(jnp.vdot(a, b)) for a, b in zip(leaves(g), leaves(direction),
+                                                       strict=True))
+    h = 1e-5
+    assert (along(h) - along(-h)) / (2 * h) == pytest.approx(exact, rel=1e-6)

@@ -171,7 +171,8 @@ def pack_tape(tape: list):
 
 def lane_step_adjoint(st: Structure, consts: _Consts, tape, z_bar, P_bar, ts,
                       z=None, P=None, rates=None, want_ts: bool = False,
-                      want_rates: bool = False, nu_bar=None, s_bar=None):
+                      want_rates: bool = False, nu_bar=None, s_bar=None, y_bar=None,
+                      S_bar=None):
     """The reverse mode of ``lane_step`` (its plain form), written by hand from the step's
     packed ``tape`` (``pack_tape``): every piece transposed in reverse order. Given the
     cotangents ``(z_bar, P_bar)`` of the new ``(z, P)``, returns those of ``z``, ``P``,
@@ -179,7 +180,9 @@ def lane_step_adjoint(st: Structure, consts: _Consts, tape, z_bar, P_bar, ts,
     needs the step's inputs ``z, P, rates``) and ``rates`` when asked for (else ``None``).
     ``nu_bar``, ``s_bar`` (``m, Nb, B``, or ``None``): the cotangents of the step's other
     outputs with ``innovations``, every joint's innovation ``hb - z_i`` and its variance
-    ``P_ii + rb`` before its update.
+    ``P_ii + rb`` before its update. ``y_bar``, ``S_bar`` (``Ny, Nb, B`` and ``n_tri(Ny), Nb,
+    B``, or ``None``): those of the predicted moments before any update (``LaneStep.y``,
+    ``.S``: the smoother's terms).
 
     Each update ``z' = z + k nu``, ``P' = P - k c^T - c k^T + s k k^T`` (Joseph form, ``c = P
     e_i``, ``s = c_i + r``, ``k = c / s``) is the function ``P - c c^T / s`` of ``(P, r)``, and is
@@ -197,6 +200,7 @@ def lane_step_adjoint(st: Structure, consts: _Consts, tape, z_bar, P_bar, ts,
         z_bar, P_bar, hb_bar[index], rb_bar[index] = _update_adjoint(
             c, n, index, z_bar, P_bar, k, w, None if nu_bar is None else nu_bar[index],
             None if s_bar is None else s_bar[index])
+    y_out_bar, S_out_bar = y_bar, S_bar
     if st.n_e:
         y_bar = jnp.concatenate([z_bar, jnp.zeros((st.n_e,) + z_bar.shape[1:], z_bar.dtype)])
         S_bar = _apply(c.unrestrict, P_bar)
@@ -204,6 +208,10 @@ def lane_step_adjoint(st: Structure, consts: _Consts, tape, z_bar, P_bar, ts,
         y_bar, S_bar = z_bar, P_bar
     for n, index, k, w in reversed(terms[:st.n_e]):
         y_bar, S_bar, _, _ = _update_adjoint(c, n, index, y_bar, S_bar, k, w)
+    if y_out_bar is not None:  # the predicted moments are outputs too
+        y_bar = y_bar + y_out_bar
+    if S_out_bar is not None:
+        S_bar = S_bar + S_out_bar
     # The prediction is linear in (z, P, rates, noise): its transpose.
     z_bar = _apply(c.F0.T, y_bar) + ts * _apply(c.F1.T, y_bar)
     P_bar = (_apply(c.C[0].T, S_bar)

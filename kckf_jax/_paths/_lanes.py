@@ -36,7 +36,7 @@ from .._models._kernel import (
 )
 from .._models._params import Params
 from .._readings._prepare import prepare
-from ._base import AbstractPath, PathCost, SmootherLayout, is_traced, kalman_only
+from ._base import AbstractPath, PathCost, kalman_only
 from ._exact_lanes import exact_lanes, exact_lanes_run
 from ._lane_step import _apply, _Consts, _tri, _tri_index, lane_step, pack_tape
 from ._lanes_adjoint import scan_rows
@@ -274,11 +274,12 @@ def _lane_loop(params: Params, st: Structure, start: LaneState, inputs: LaneInpu
         # No-op rows pad the last chunk: no time step, every reading missing.
         final, out = chunked_scan(body, carry, rows, remat_chunk,
                                   jax.tree_util.tree_leaves(NO_OP_INPUTS))
-    elif keep not in (LaneRows, LaneInnovations) or snapshot_row is not None:
+    elif keep not in (LaneRows, LaneInnovations, LaneMoments) or snapshot_row is not None:
         # Each row recomputed under reverse mode (only the carries saved): the transposed
         # body then runs as one piece (64 x 10,000 bench, float32: gradient 3.7 -> 3.0 s).
         final, out = jax.lax.scan(jax.checkpoint(body), carry, rows)
-    else:  # the filter or its innovations: the reverse pass written by hand (_lanes_adjoint)
+    else:  # the filter, its innovations or the smoother's forward pass: the reverse pass
+        # written by hand (_lanes_adjoint)
         final, out = scan_rows(st, consts, Rm, body, x0, hold, rows)
 
     def states(x, h) -> LaneState:  # lanes layout -> lanes first
@@ -380,17 +381,6 @@ class Lanes(AbstractPath):
         if why is not None:
             raise ValueError(f"the lanes path does not apply: {why}")
         return "lanes"
-
-    def smoother_layout(self, params: Params, series: SensorSeries, method: str
-                        ) -> SmootherLayout:
-        """``"lanes"`` on concrete inputs; inside a caller's trace (a fitting loss of the
-        smoothed estimates, ``FitConfig.smooth``) ``"sequential"``: the lanes smoother has no
-        hand-written reverse pass as the lanes filter has, and its automatic one costs more
-        than the vmapped sequential smoother's (benchmarks/README.md, "Measurements behind the
-        paths' choices")."""
-        if is_traced(params, series):
-            return SmootherLayout("sequential")
-        return SmootherLayout(self.batch_layout(int(np.shape(series.dt)[0]), method))
 
     def cost(self, n_trials: int, n_rows: int) -> PathCost:
         """Compile 2.8 s; ``0.5 + 2 / B`` us a trial-row (the lanes fill with trials): fitted to

@@ -11,7 +11,8 @@ reverse scan, last
 row first, applies ``lane_step_adjoint`` to them (nothing is recomputed), written out entry by
 entry like the step: 46 fusions in the reverse loop body. The
 likelihood's scan (``innovations``) takes it too, with the cotangents of every innovation and
-its variance.
+its variance, and so does the smoother's forward pass (``LaneMoments``), with those of every
+row's predicted moments (``_lanes_smooth``).
 
 Exact: the same derivative as the automatic one, to rounding (``tests/test_lanes_adjoint.py``
 checks it against it, and against finite differences, in float64). Only the cotangents that
@@ -36,9 +37,11 @@ from ._lane_step import _apply, _Consts, lane_step_adjoint
 def scan_rows(st: Structure, consts: _Consts, Rm: np.ndarray, body, x0, hold0, rows):
     """``lax.scan(body, (x0, hold0), rows)`` of the lanes scan's body (``_lanes._lane_loop``,
     ``rows`` its ``LaneInputs``), differentiated by hand. Returns ``((xT, holdT), kept)``,
-    per row the ``LaneRows`` (``z``, ``P``, ``skipped``) or ``LaneInnovations`` (``nu``,
+    per row the ``LaneRows`` (``z``, ``P``, ``skipped``), ``LaneInnovations`` (``nu``,
     ``s``, ``valid``: every joint's fused Hall innovation and its variance, before its update)
-    that ``body`` keeps; ``Rm`` maps the held gyro rates to the block rates."""
+    or ``LaneMoments`` (``LaneRows``' and the predicted ``y``, ``S`` before the updates: the
+    smoother's forward pass) that ``body`` keeps; ``Rm`` maps the held gyro rates to the block
+    rates."""
 
     @eqx.filter_custom_vjp
     def run(args: _ScanArgs):
@@ -64,6 +67,7 @@ def scan_rows(st: Structure, consts: _Consts, Rm: np.ndarray, body, x0, hold0, r
         want_hold = flags.hold0 or flags.gyro
         (xT_bar, holdT_bar), kept_bar = cts
         innovations = hasattr(kept_bar, "nu")
+        moments = hasattr(kept_bar, "y")  # the smoother's forward pass (LaneMoments)
         nz = st.n_z
         nb = st.angle_index.shape[0]
         T = tape_rows.skipped.shape[0]
@@ -77,6 +81,8 @@ def scan_rows(st: Structure, consts: _Consts, Rm: np.ndarray, body, x0, hold0, r
             carry += (dense(holdT_bar, hold0),)
         # Per row: the cotangents of (z, P), or with innovations of (nu, s).
         per_row = (kept_bar.nu, kept_bar.s) if innovations else (kept_bar.z, kept_bar.P)
+        if moments:
+            per_row += (kept_bar.y, kept_bar.S)
 
         def before(t, x_rows, first):  # the state entering row t
             prev = jax.lax.dynamic_index_in_dim(x_rows, jnp.maximum(t - 1, 0), keepdims=False)
@@ -84,9 +90,16 @@ def scan_rows(st: Structure, consts: _Consts, Rm: np.ndarray, body, x0, hold0, r
 
         def back(carry, row):
             z_bar, P_bar = carry[:2]
-            t, inputs_t, sk, tape, first_bar, second_bar = row
+            t, inputs_t, sk, tape, first_bar, second_bar = row[:6]
             ts, g = inputs_t.ts, inputs_t.gyro
+            fin = ~sk
             outputs_bar = {}
+            if moments:
+                # A skipped row's predicted moments were computed from its entering state
+                # too: its updates pass cotangents through (zero gains, as a skipped
+                # update's), so the reverse step gives the moments' derivative alone.
+                tape = jnp.where(fin, tape, 0.0)
+                outputs_bar = dict(y_bar=row[6], S_bar=row[7])
             if innovations:
                 outputs_bar = dict(nu_bar=first_bar, s_bar=second_bar)
             else:
@@ -94,7 +107,6 @@ def scan_rows(st: Structure, consts: _Consts, Rm: np.ndarray, body, x0, hold0, r
                     z_bar = z_bar + first_bar
                 if second_bar is not None:
                     P_bar = P_bar + second_bar
-            fin = ~sk
             tsb = jnp.broadcast_to(ts, (nb,) + ts.shape)
             inputs = {}
             if flags.ts:  # the step's inputs, for the derivative in its time step
@@ -107,11 +119,14 @@ def scan_rows(st: Structure, consts: _Consts, Rm: np.ndarray, body, x0, hold0, r
                 want_ts=flags.ts, want_rates=want_hold, **inputs, **outputs_bar)
 
             # A skipped row kept its state: its cotangent passes through, and nothing of the
-            # (non-finite) step reaches the inputs.
+            # (non-finite) step reaches the inputs (but its predicted moments', above).
             def kept(x):
-                return jnp.where(fin, x, 0.0)
+                return x if moments else jnp.where(fin, x, 0.0)
 
-            new = (jnp.where(fin, z_new, z_bar), jnp.where(fin, P_new, P_bar))
+            if moments:
+                new = (z_new + jnp.where(fin, 0.0, z_bar), P_new + jnp.where(fin, 0.0, P_bar))
+            else:
+                new = (jnp.where(fin, z_new, z_bar), jnp.where(fin, P_new, P_bar))
             g_bar = None
             if want_hold:  # hold' = g where the row is kept and g finite, else hold
                 take = fin & jnp.isfinite(g)
