@@ -166,7 +166,7 @@ def lane_rts_covariance(st: Structure, c: _Consts, P_f, S, Gt, use, skipped, P_s
 
 
 def lane_rts(st: Structure, moments: LaneMoments | LaneMomentsInnovations,
-             ts_rows: Float[Array, "T B"]):
+             ts_rows: Float[Array, "T B"], gradient: bool = True):
     """The backward pass over ``lane_moments_scan``'s rows (rows first, trials last): the
     smoothed ``(z, P)`` of every row (the last row's are its filtered ones).
 
@@ -181,6 +181,8 @@ def lane_rts(st: Structure, moments: LaneMoments | LaneMomentsInnovations,
                                                moments.y, moments.S)
     c = _Consts(st)
     nb = z_rows.shape[2]
+    if not gradient:  # each row's gain formed in the recursion, one scan
+        return _lane_rts_rows(st, c, moments, ts_rows)
     # A skipped next row passes its smoothed state through, whatever its moments (which may
     # not be finite, and would spread NaN into the derivative): they are zeroed, so its gain
     # is zero and finite.
@@ -201,6 +203,30 @@ def lane_rts(st: Structure, moments: LaneMoments | LaneMomentsInnovations,
     z = _mean_pass(st, z_rows[:-1], y_next, Gt, use, skb, z_rows[-1])
     _, P = jax.lax.scan(covariance, P_rows[-1], (P_rows[:-1], S_next, Gt, use, skb),
                         reverse=True)
+    return jnp.concatenate([z, z_rows[-1:]]), jnp.concatenate([P, P_rows[-1:]])
+
+
+def _lane_rts_rows(st: Structure, c: _Consts, moments, ts_rows):
+    """``lane_rts`` as one scan, each row's gain formed in its step: the layout without a
+    gradient (64 trials x 10,000 rows: 0.63 s, against 0.98 s with the gains formed
+    beforehand), the same arithmetic."""
+    nb = moments.z.shape[2]
+
+    def body(carry, row):
+        z_s, P_s = carry
+        z_f, P_f, y, S, ts, skip = row
+        tsb = jnp.broadcast_to(ts, (nb,) + ts.shape)
+        skb = jnp.broadcast_to(skip, (nb,) + skip.shape)
+        use = jnp.stack(_used(st, c, S, tsb))
+        Gt = cholesky_solve(*_gain_system(st, c, P_f, S, tsb, use))
+        z = lane_rts_mean(st, z_f, y, Gt, use, skb, z_s)
+        P = lane_rts_covariance(st, c, P_f, S, Gt, use, skb, P_s)
+        return (z, P), (z, P)
+
+    z_rows, P_rows = moments.z, moments.P
+    rows = (z_rows[:-1], P_rows[:-1], moments.y[1:], moments.S[1:], ts_rows[1:],
+            moments.skipped[1:])
+    _, (z, P) = jax.lax.scan(body, (z_rows[-1], P_rows[-1]), rows, reverse=True)
     return jnp.concatenate([z, z_rows[-1:]]), jnp.concatenate([P, P_rows[-1:]])
 
 
@@ -253,16 +279,17 @@ def _mean_pass(st: Structure, z_f, y_next, Gt, use, skipped, z_last):
 
 
 def lane_smooth(params: Params, st: Structure, series: SensorSeries, state: FilterState,
-                innovations: bool = False) -> Estimate:
+                innovations: bool = False, gradient: bool = True) -> Estimate:
     """The smoothed angles, their standard deviations and biases of a batch of trials (leading
     axis ``B`` on ``series`` and ``state``), and the skipped rows; ``innovations``: with the
-    forward pass's fused Hall innovations (``Estimate.innovations``, ``B T Nb m``)."""
+    forward pass's fused Hall innovations (``Estimate.innovations``, ``B T Nb m``).
+    ``gradient``: laid out for reverse mode (``lane_rts``); ``False`` for concrete inputs."""
     dtype = state.z.dtype
     series = prepare(params, series, dtype=dtype)  # a linear model: the paper's gyro pairs
     rows = lane_moments_scan(params, st, LaneState(state.z, state.P, state.gyro_hold),
                              lane_inputs(params, st, series.dt, series.gyro,
                                          series.hall_v), innovations).rows
-    z, P = lane_rts(st, rows, jnp.moveaxis(series.dt, 0, 1))
+    z, P = lane_rts(st, rows, jnp.moveaxis(series.dt, 0, 1), gradient)
     angles, std, bias = lane_estimates(st, z, P)
     return Estimate(angles, std, bias, jnp.moveaxis(rows.skipped, 0, 1),
                     innovations=rows_innovations(rows))

@@ -150,7 +150,8 @@ def _smooth_on(layout: SmootherLayout, params: Params, series: SensorSeries, met
                 raise ValueError(f"smooth: the steady path does not apply: {why}")
         est = _smooth_steady(smoother, params, series, method, innovations)
     elif layout.name == "lanes":
-        est = _smooth_lanes(params, series, method, innovations)
+        # Inside a caller's trace (a fitting loss), laid out for its gradient.
+        est = _smooth_lanes(params, series, method, innovations, is_traced(params, series))
     else:
         est = _smooth_many(params, series, method, innovations)
     label = "smoothed" if layout.name == "sequential" else f"smoothed:{layout.name}"
@@ -186,9 +187,10 @@ def _smooth_many(params, series, method, innovations=False):
 
 
 @eqx.filter_jit
-def _smooth_lanes(params, series, method, innovations=False):
+def _smooth_lanes(params, series, method, innovations=False, gradient=True):
     state = init_states(params, method, jnp.shape(series.dt)[0])
-    return lane_smooth(params, structure(params.robot, method), series, state, innovations)
+    return lane_smooth(params, structure(params.robot, method), series, state, innovations,
+                       gradient)
 
 
 @eqx.filter_jit
