@@ -255,7 +255,7 @@ def test_cli_writes_the_effects(tmp_path, capsys):
 
 @pytest.mark.parametrize("specs, message", [
     (["wobble=1"], "--effect 'wobble=1': unknown name 'wobble'; expected one of play, curve, "
-                   "sync, delay"),
+                   "sync, delay, mount, soft"),
     (["play"], "--effect 'play': expected NAME=SIZE, e.g. play=1"),
     (["curve=abc"], "--effect 'curve=abc': size 'abc' is not a number"),
     (["play=-1"], "--effect 'play=-1': the size must be a finite number >= 0"),

@@ -58,6 +58,7 @@ from ._sim_motion import (  # noqa: E402
     _Smooth,
     _smoothstep,
 )
+from ._sim_mount import mount_rotations, rotation_matrices, soft_mount_rates
 
 KINDS = ("cyclic", "static", "human", "walking")
 KINEMATICS = ("linear", "exact")
@@ -65,10 +66,11 @@ DPS = DEG  # one degree per second, in rad/s
 #: ``kckf simulate --effect NAME=SIZE``: each name's ``SimConfig`` field (play and curve in deg,
 #: sync in s).
 EFFECTS = {"play": "hall_play_deg", "curve": "hall_curve_deg", "sync": "mocap_sync_error_s",
-           "delay": "gyro_delay_s"}
+           "delay": "gyro_delay_s", "mount": "gyro_mount_deg", "soft": "soft_mount_hz"}
 _CURVE_RANGE_DEG = 30.0  # u = theta / 30 deg: the span of the paper's Eq. 1 fit, Fig. 3
 # Salts the device seed for the effects' own generator (another stream than ``dev``'s 7919).
 _EFFECTS_SALT = 6151
+_MOUNT_SALT = 4423  # the gyro boards' tilts and soft mounts (a stream of their own)
 #: The largest ``motion_range_deg``: beyond +-180 deg an angle wraps round.
 MAX_RANGE_DEG = 180.0
 #: Above this range (1.5 times the span of Eq. 1's fit) the curve effect's cubic in
@@ -110,6 +112,11 @@ class SimConfig:
     hall_curve_deg: float = 0.0  # RMS over +-30 deg of each Hall curve's P2/P3 deviation, deg
     mocap_sync_error_s: float = 0.0  # error of the recorded mocap_time_offset_s, s (signed)
     gyro_delay_s: float = 0.0  # the gyros' delay against the Hall sensors (their filters), s
+    # Gyros as worn (_sim_mount): each board's tilt on its link, deg (x U(0.5, 1), random
+    # axis), and its soft mount's natural frequency, Hz (x U(0.8, 1.2); 0: rigid).
+    gyro_mount_deg: float = 0.0
+    soft_mount_hz: float = 0.0
+    soft_mount_damping: float = 0.3  # the soft mount's damping ratio (assumption, underdamped)
     # The motion's largest |angle| (joint and torso angles), deg; None: each kind's own
     # amplitudes (the paper's small angles). ``kckf simulate --range-deg`` (docs/simulator.md).
     motion_range_deg: float | None = None
@@ -119,8 +126,9 @@ def parse_effects(specs: Sequence[str]) -> dict[str, float]:
     """``kckf simulate --effect NAME=SIZE`` texts as ``SimConfig`` fields and values.
 
     Names: ``play`` (deg, ``hall_play_deg``), ``curve`` (deg, ``hall_curve_deg``), ``sync`` (s,
-    ``mocap_sync_error_s``, signed), ``delay`` (s, ``gyro_delay_s``). A bad text raises
-    ``ValueError`` naming it.
+    ``mocap_sync_error_s``, signed), ``delay`` (s, ``gyro_delay_s``), ``mount`` (deg,
+    ``gyro_mount_deg``), ``soft`` (Hz, ``soft_mount_hz``). A bad text raises ``ValueError``
+    naming it.
 
     Example:
         >>> parse_effects(["play=1", "sync=-0.02"])
@@ -154,6 +162,13 @@ def _check_effects(cfg: SimConfig) -> None:
         if not (np.isfinite(value) and (signed or value >= 0)):
             raise ValueError(f"simulate: config.{field} must be a finite number"
                              f"{'' if signed else ' >= 0'}, got {value}")
+    if cfg.soft_mount_hz > 0 and not 0 < cfg.soft_mount_damping < 1:
+        raise ValueError(f"simulate: config.soft_mount_damping must be in (0, 1) (an "
+                         f"underdamped mount), got {cfg.soft_mount_damping}")
+    if cfg.soft_mount_hz > 0 and cfg.soft_mount_hz * 1.2 >= cfg.sample_rate_hz / 2:
+        raise ValueError(f"simulate: config.soft_mount_hz ({cfg.soft_mount_hz:g} Hz, up to 1.2 "
+                         f"times that per link) must stay below half the sample rate "
+                         f"({cfg.sample_rate_hz / 2:g} Hz): a faster wobble is not sampled")
 
 
 def _check_rate_and_range(cfg: SimConfig) -> None:
@@ -307,6 +322,18 @@ def simulate(
         for j, (i, a) in enumerate(robot.joint_axes):
             link_rate[:, i:, AXES.index(a)] += rate[:, j : j + 1]
 
+    # ---- gyros as worn (_sim_mount): each board moving on a soft mount, tilted on its link.
+    mnt = np.random.default_rng(np.random.SeedSequence([device_seed, _MOUNT_SALT,
+                                                        len(robot.spec)]))
+    tilt = mount_rotations(mnt, robot.n_links, cfg.gyro_mount_deg)  # (L, 3), rad
+    soft_hz = cfg.soft_mount_hz * mnt.uniform(0.8, 1.2, robot.n_links)
+    wobble = None
+    if cfg.soft_mount_hz > 0:
+        wobble_rate, wobble = soft_mount_rates(t, link_rate, soft_hz, cfg.soft_mount_damping)
+        link_rate = link_rate + wobble_rate
+    if cfg.gyro_mount_deg > 0:  # the board reads R' omega
+        link_rate = np.einsum("lji,tlj->tli", rotation_matrices(tilt), link_rate)
+
     # ---- gyroscopes: scale error, bias (zero-rate level + warm-up drift + random walk), noise.
     shape = (robot.n_links, 3)
     zero_rate = rng.uniform(-1, 1, shape) * cfg.gyro_zero_rate_dps * DPS
@@ -395,7 +422,8 @@ def simulate(
     # An effect that is off is left out of the record, so that a session without effects has
     # the meta.json it had before they existed (apart from "effects": the gyro scales).
     config = {k: v for k, v in asdict(cfg).items()
-              if (v or k not in EFFECTS.values()) and not (k == "motion_range_deg" and v is None)}
+              if (v or k not in EFFECTS.values()) and not (k == "motion_range_deg" and v is None)
+              and not (k == "soft_mount_damping" and not cfg.soft_mount_hz)}
     effects: dict = {}
     if cfg.hall_play_deg > 0:
         effects["hall_play_deg"] = {n: float(h) for n, h in
@@ -407,6 +435,15 @@ def simulate(
         effects["mocap_sync_error_s"] = float(cfg.mocap_sync_error_s)
     if cfg.gyro_delay_s > 0:
         effects["gyro_delay_s"] = float(cfg.gyro_delay_s)
+    links = [f"gyro{i + 1}" for i in range(robot.n_links)]
+    if cfg.gyro_mount_deg > 0:  # each board's tilt as a rotation vector, deg
+        effects["gyro_mount_deg"] = {n: [float(x) for x in v / DEG] for n, v in zip(links, tilt)}
+    if cfg.soft_mount_hz > 0:
+        effects["soft_mount"] = {
+            "damping_ratio": float(cfg.soft_mount_damping),
+            "natural_frequency_hz": {n: float(f) for n, f in zip(links, soft_hz)},
+            "rms_wobble_deg": {n: float(np.sqrt(np.mean(wobble[:, i] ** 2)) / DEG)
+                               for i, n in enumerate(links)}}
     # reading = (1 + s) * rate: the factor minus 1 (exact: the factor lies in [0.5, 2]).
     effects["gyro_scale"] = {n: float(x) for n, x in zip(robot.gyro_names, (scale - 1).ravel())}
     simulation = {

@@ -18,7 +18,8 @@ DTYPES = ("float32", "float64")
 EXPERIMENTS = {"arm-imu": "arm exoskeleton + IMU fusion (Chen et al.)",
                "markov": "Markovian (MJLS) KF for a lower-limb exoskeleton, Fig. 9"}
 #: ``kckf simulate --effect NAME=SIZE``: the unit of each name's size (``SimConfig``'s).
-_SIM_EFFECT_UNITS = {"play": "DEG", "curve": "DEG", "sync": "SEC", "delay": "SEC"}
+_SIM_EFFECT_UNITS = {"play": "DEG", "curve": "DEG", "sync": "SEC", "delay": "SEC",
+                     "mount": "DEG", "soft": "HZ"}
 #: ``--quiet`` and ``--debug``'s help (the main parser's and every verb's copy).
 QUIET_HELP = ("no progress bars or messages on stderr; the result (JSON on stdout, the tables "
               "of evaluate, demo and experiment), warnings about the data and errors still "
@@ -158,7 +159,9 @@ def build_parser(commands: Mapping[str, Callable], demo_steps: int) -> argparse.
                 "play=DEG": "the joints' play as the Hall sensors see it",
                 "curve=DEG": "each Hall curve's RMS departure from Eq. 1",
                 "sync=SEC": "a motion-capture clock error meta.json does not know",
-                "delay=SEC": "the gyros' delay against the Hall sensors"})
+                "delay=SEC": "the gyros' delay against the Hall sensors",
+                "mount=DEG": "each gyro board's tilt on its link (x U(0.5, 1))",
+                "soft=HZ": "each gyro board's soft mount, its natural frequency"})
         + "; docs/simulator.md, 'Sensor effects'"), tuple(SIM_EFFECTS))
     s.add_argument("--range-deg", type=float, default=None, metavar="DEG",
                    help="scale the motion so that its largest |angle| (joints and torso) is "
