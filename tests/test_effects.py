@@ -31,12 +31,13 @@ def session():
 
 def some_effects(robot: kk.Robot, on=EFFECTS) -> SensorEffects:
     """Effects of realistic sizes: 20 ms, the step's midpoint, 1 % scales, 0.8-1.2 deg of
-    play, curves of 0.5 deg."""
+    play, curves of 0.5 deg, boards turned by up to 5 deg per axis."""
     rng = np.random.default_rng(0)
     G, J, M = 3 * robot.n_links, robot.n_joint_axes, robot.n_hall
     return SensorEffects(jnp.asarray(2.0), jnp.asarray(0.5), jnp.asarray(rng.uniform(-1, 1, G)),
                          jnp.asarray(rng.uniform(0.8, 1.2, J)),
-                         jnp.asarray(rng.uniform(-0.5, 0.5, (M, 2))), on=tuple(on))
+                         jnp.asarray(rng.uniform(-0.5, 0.5, (M, 2))),
+                         jnp.asarray(rng.uniform(-5, 5, (robot.n_links, 3))), on=tuple(on))
 
 
 def reference_correction(params: kk.Params, effects: SensorEffects, gyro, hall_v):
@@ -45,6 +46,16 @@ def reference_correction(params: kk.Params, effects: SensorEffects, gyro, hall_v
     the gyro timing is the step's (``test_gyro_timing_of_a_recording_is_the_streams``)."""
     a, b, c, d, sign = (np.asarray(x, np.float64) for x in params.hall_coeffs)
     gyro = np.asarray(gyro, np.float64) / (1 + np.asarray(effects.gyro_scale, np.float64) / 100)
+    # Each board's triad turned back, R g, R = expm([v]_x) (a series, not Rodrigues).
+    boards = gyro.reshape(len(gyro), -1, 3)
+    for i, v in enumerate(np.asarray(effects.mounting, np.float64) * DEG):
+        K = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+        R, term = np.eye(3), np.eye(3)
+        for n in range(1, 20):
+            term = term @ K / n
+            R = R + term
+        boards[:, i] = boards[:, i] @ R.T
+    gyro = boards.reshape(gyro.shape)
     theta = sign * (a * np.exp(b * hall_v) - c * np.exp(-d * hall_v))
     plus, minus = ROBOT.rate_pairs
     J = ROBOT.n_joint_axes
@@ -108,29 +119,66 @@ def test_missing_readings_stay_missing_without_nan_gradients(session):
     assert np.isfinite(np.asarray(v)[~np.isnan(hall_v)]).all()
 
     def total(e):
-        _, v = corrected_readings(e, ROBOT, params.hall_coeffs, jnp.asarray(gyro),
+        g, v = corrected_readings(e, ROBOT, params.hall_coeffs, jnp.asarray(gyro),
                                   jnp.asarray(hall_v))
-        return jnp.nansum(v)
+        return jnp.nansum(v) + jnp.nansum(g**2)
 
     grads = jax.grad(total)(effects)
-    for leaf in (grads.gyro_scale, grads.play, grads.curve):
+    for leaf in (grads.gyro_scale, grads.play, grads.curve, grads.mounting):
         assert np.isfinite(np.asarray(leaf)).all()
-    assert np.abs(np.asarray(grads.play)).max() > 0 and np.abs(np.asarray(grads.curve)).max() > 0
+    for leaf in (grads.play, grads.curve, grads.mounting):
+        assert np.abs(np.asarray(leaf)).max() > 0
+    # At zero rotation too (the start of a fit): finite and not zero.
+    zero = dataclasses.replace(effects, mounting=jnp.zeros_like(effects.mounting))
+    at_zero = np.asarray(jax.grad(total)(zero).mounting)
+    assert np.isfinite(at_zero).all() and np.abs(at_zero).max() > 0
 
 
 def test_effects_off_change_nothing(session):
-    """Zero-valued effects, all on, and no effects at all: the same estimates (float64)."""
+    """Zero-valued effects, all on, and no effects at all: the same estimates (float64).
+    ``gyro_mounting`` makes a triad with a missing axis missing (its correction mixes the
+    axes), so with zero rotations it changes nothing on complete readings only."""
     params = kk.Params.paper_defaults(ROBOT, session.hall_models)
-    series = kk.session_series(session)
-    base = kk.run_filter(params, series)[1]
-    for p in (params.with_effects(EFFECTS), params.with_effects(())):
-        est = kk.run_filter(p, series)[1]
-        np.testing.assert_allclose(np.asarray(est.angles), np.asarray(base.angles), rtol=0,
+    complete = kk.simulate(ROBOT, "cyclic", seed=3, duration_s=12.0)
+    for s, on in ((session, tuple(e for e in EFFECTS if e != "gyro_mounting")),
+                  (complete, EFFECTS)):
+        series = kk.session_series(s)
+        base = kk.run_filter(params, series)[1]
+        for p in (params.with_effects(on), params.with_effects(())):
+            est = kk.run_filter(p, series)[1]
+            np.testing.assert_allclose(np.asarray(est.angles), np.asarray(base.angles), rtol=0,
+                                       atol=1e-12)
+        sm0 = kk.smooth(params, series)
+        sm1 = kk.smooth(params.with_effects(on), series)
+        np.testing.assert_allclose(np.asarray(sm1.angles), np.asarray(sm0.angles), rtol=0,
                                    atol=1e-12)
-    sm0 = kk.smooth(params, series)
-    sm1 = kk.smooth(params.with_effects(EFFECTS), series)
-    np.testing.assert_allclose(np.asarray(sm1.angles), np.asarray(sm0.angles), rtol=0,
-                               atol=1e-12)
+
+
+def test_a_turned_board_is_turned_back():
+    """A session whose boards are tilted (the simulator's ``gyro_mount_deg``, ideal gyros):
+    ``gyro_mounting`` at the recorded tilts gives the untilted boards' readings back, and a
+    triad with a missing axis is missing."""
+    ideal = dict(gyro_noise_density_dps_rthz=0.0, gyro_zero_rate_dps=0.0,
+                 gyro_temp_coeff_dps_per_c=0.0, gyro_bias_walk_dps_rts=0.0,
+                 gyro_scale_error=0.0, gyro_lsb_dps=1e-9)
+    kw = dict(kind="walking", seed=5, duration_s=4.0, kinematics="exact")
+    robot = kk.Robot.from_spec("xyz,y")
+    plain = kk.simulate(robot, config=kk.SimConfig(**ideal), **kw)
+    tilted = kk.simulate(robot, config=kk.SimConfig(**ideal, gyro_mount_deg=10.0), **kw)
+    tilt = tilted.extra_meta["simulation"]["effects"]["gyro_mount_deg"]
+    effects = SensorEffects.zeros(robot, on=("gyro_mounting",))
+    effects = dataclasses.replace(effects, mounting=jnp.asarray(
+        [tilt[f"gyro{i + 1}"] for i in range(robot.n_links)]))
+    params = kk.Params.paper_defaults(robot, plain.hall_models)
+    gyro = tilted.gyro.copy()
+    gyro[10, 4] = np.nan
+    got, _ = corrected_readings(effects, robot, params.hall_coeffs, jnp.asarray(gyro),
+                                jnp.asarray(tilted.hall_v))
+    got = np.asarray(got)
+    assert np.isnan(got[10, 3:6]).all() and np.isfinite(got[10, :3]).all()
+    keep = np.ones(len(gyro), bool)
+    keep[10] = False
+    np.testing.assert_allclose(got[keep], plain.gyro[keep], atol=1e-7)
 
 
 @pytest.mark.long
@@ -180,8 +228,8 @@ def test_stream_and_export_correct_as_the_batch_filter(session, tmp_path):
         np.testing.assert_allclose(np.asarray(got, np.float64), batch, atol=1e-9)
         if not baked:
             names = [n for n, _ in step.header["param_leaves"]]
-            assert names[-5:] == ["effects.offset", "effects.timing", "effects.gyro_scale",
-                                  "effects.play", "effects.curve"]
+            assert names[-6:] == ["effects.offset", "effects.timing", "effects.gyro_scale",
+                                  "effects.play", "effects.curve", "effects.mounting"]
 
 
 def test_parameter_file_round_trip(tmp_path):
@@ -195,6 +243,18 @@ def test_parameter_file_round_trip(tmp_path):
     back = kk.load_params(path)
     assert back.effects.on == ("offset", "play")
     np.testing.assert_allclose(np.asarray(back.effects.play), np.asarray(params.effects.play))
+    mounted = kk.Params.paper_defaults(ROBOT).with_effects(("gyro_mounting",),
+                                                           some_effects(ROBOT))
+    kk.save_params(mounted, path)
+    doc_m = json.loads(Path(path).read_text())
+    assert doc_m["effects"]["gyro_mounting"]["gyro2"]["rotation_deg"] == pytest.approx(
+        np.asarray(mounted.effects.mounting)[1].tolist())
+    np.testing.assert_allclose(np.asarray(kk.load_params(path).effects.mounting),
+                               np.asarray(mounted.effects.mounting))
+    doc_m["effects"]["gyro_mounting"]["gyro1"]["rotation_deg"] = [1.0, 2.0]
+    Path(path).write_text(json.dumps(doc_m))
+    with pytest.raises(kk.ParamsFileError, match=r"gyro_mounting\.gyro1\.rotation_deg"):
+        kk.load_params(path)
     kk.save_params(kk.Params.paper_defaults(ROBOT), path)
     assert "effects" not in json.loads(Path(path).read_text())  # no effects: the file as before
     doc["effects"]["play"]["theta9_x"] = {"half_width_deg": 1.0}
@@ -236,13 +296,14 @@ def test_fit_reaches_every_learned_leaf_and_keeps_a_frozen_one(session):
     refused, naming it."""
     start = kk.Params.paper_defaults(ROBOT, session.hall_models).with_effects(
         ("gyro_timing",), some_effects(ROBOT))
-    cfg = kk.FitConfig(steps=1, val_every=1, learn=("gyro_timing", "offset", "play", "curve"),
+    cfg = kk.FitConfig(steps=1, val_every=1, learn=("gyro_timing", "offset", "play", "curve",
+                                                    "gyro_mounting"),
                        freeze=("effects.timing",), smooth=True)
     e = kk.fit([session], (), cfg, init=start).params.effects
-    assert e.on == ("offset", "gyro_timing", "play", "curve")
+    assert e.on == ("offset", "gyro_timing", "play", "curve", "gyro_mounting")
     assert float(e.timing) == float(start.effects.timing)
     for leaf, was in ((e.offset, start.effects.offset), (e.play, start.effects.play),
-                      (e.curve, start.effects.curve)):
+                      (e.curve, start.effects.curve), (e.mounting, start.effects.mounting)):
         assert np.abs(np.asarray(leaf) - np.asarray(was)).max() > 0
     np.testing.assert_array_equal(np.asarray(e.gyro_scale), np.asarray(start.effects.gyro_scale))
     with pytest.raises(ValueError, match="'effects.play' belongs to the effect 'play'"):

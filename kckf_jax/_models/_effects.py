@@ -32,6 +32,12 @@ on a simulated session can be checked against the truth (``training/recovery.py`
   are compared with motion capture (the fitting loss, ``kckf evaluate``) and nothing the
   filter computes; a live stream has no motion capture, so the stream and the export carry
   it in the parameters but do not use it.
+* ``gyro_mounting``: each link's gyro board sits turned on its link (strapped or glued on a
+  few degrees off), so it reads ``R' omega``, the link's rate in its own frame. The correction
+  turns each triad back, ``R g``, ``R`` the rotation of a rotation vector per link (deg, one
+  per board: ``x, y, z``). It mixes a triad's three axes, so where one of them is missing the
+  corrected triad is missing (its rows hold the last one, as for any missing reading). Read
+  by ``kckf`` through its gyro pairs as by ``kckf3d`` through the whole triads.
 
 The Hall corrections are made on the voltage: the reading ``V`` becomes ``V'`` with
 ``theta(V') = theta(V) + correction`` (Newton's method on Eq. 1 from ``V``; the curve is
@@ -61,9 +67,9 @@ from ._robot import Robot
 
 DEG = math.pi / 180.0
 #: The effects that can be learned, in the order the docs give them.
-EFFECTS = ("offset", "gyro_timing", "gyro_scale", "play", "curve")
+EFFECTS = ("offset", "gyro_timing", "gyro_scale", "play", "curve", "gyro_mounting")
 #: The leaves of ``SensorEffects``, in order (the exported step's parameter vector).
-LEAVES = ("offset", "timing", "gyro_scale", "play", "curve")
+LEAVES = ("offset", "timing", "gyro_scale", "play", "curve", "mounting")
 #: The effect each leaf belongs to.
 EFFECT_OF_LEAF = dict(zip(LEAVES, EFFECTS))
 #: The joint rate at which the play's correction is 76 % of its size (tanh(1)): 5 deg/s, about
@@ -83,7 +89,8 @@ class SensorEffects(eqx.Module):
     Leaves (unconstrained; zero is "no effect"): ``offset`` (scalar, in 10 ms), ``timing``
     (scalar, a fraction of the step: ``lambda`` of ``gyro_timing``), ``gyro_scale``
     (``G``, %), ``play`` (``J``: per joint axis, deg), ``curve`` (``M 2``: each Hall sensor's
-    P2 and P3 coefficients, deg).
+    P2 and P3 coefficients, deg), ``mounting`` (``L 3``: each link's board's rotation vector,
+    deg).
     Static: ``on``, the effects in use; an effect not in ``on`` changes nothing, whatever its
     leaf holds.
 
@@ -98,6 +105,7 @@ class SensorEffects(eqx.Module):
     gyro_scale: Float[Array, " G"]
     play: Float[Array, " J"]
     curve: Float[Array, "M 2"]
+    mounting: Float[Array, "L 3"]
     on: tuple[str, ...] = eqx.field(static=True, default=())
 
     def __check_init__(self):
@@ -112,7 +120,7 @@ class SensorEffects(eqx.Module):
         dt = dtype or jnp.asarray(0.0).dtype
         G, J, M = 3 * robot.n_links, robot.n_joint_axes, robot.n_hall
         return cls(jnp.zeros((), dt), jnp.zeros((), dt), jnp.zeros(G, dt), jnp.zeros(J, dt),
-                   jnp.zeros((M, 2), dt),
+                   jnp.zeros((M, 2), dt), jnp.zeros((robot.n_links, 3), dt),
                    on=tuple(e for e in EFFECTS if e in on))
 
     # ------------------------------------------------------------------ physical values
@@ -120,6 +128,7 @@ class SensorEffects(eqx.Module):
     gyro_scale_error = property(lambda self: self.gyro_scale * _SCALE_UNIT)
     play_rad = property(lambda self: self.play * DEG)
     curve_rad = property(lambda self: self.curve * DEG)
+    mounting_rad = property(lambda self: self.mounting * DEG)
 
     def uses(self, effect: str) -> bool:
         return effect in self.on
@@ -157,6 +166,10 @@ def corrected_readings(effects: SensorEffects, robot: Robot, hall_coeffs, gyro: 
     if effects.uses("gyro_scale"):
         g = g / (1.0 + effects.gyro_scale_error)
         gyro = jnp.where(g_valid, g, gyro)
+    if effects.uses("gyro_mounting"):
+        gyro = mounted_gyro(effects.mounting_rad, gyro)
+        g_valid = jnp.isfinite(gyro)
+        g = jnp.where(g_valid, gyro, 0.0)
     if effects.uses("gyro_timing") and jnp.ndim(gyro) >= 2:  # rows in time (a row: the step's)
         gyro = timed_gyro(effects.timing, gyro)
     play, curve = effects.uses("play"), effects.uses("curve")
@@ -179,6 +192,31 @@ def corrected_readings(effects: SensorEffects, robot: Robot, hall_coeffs, gyro: 
         v_new = v_new - (hall_angle(v_new, *hall_coeffs) - target) / hall_slope(v_new,
                                                                                   *hall_coeffs)
     return gyro, jnp.where(valid, v_new, hall_v)
+
+
+def rotation(v: Float[Array, "... 3"]) -> Float[Array, "... 3 3"]:
+    """The rotations of rotation vectors ``v`` (rad; Rodrigues, ``I + a K + b K^2`` with ``K =
+    [v]_x``), their series near zero so that value and gradient are exact at ``v = 0`` too."""
+    a2 = jnp.sum(v**2, axis=-1)[..., None, None]
+    small = a2 < 1e-8
+    a = jnp.sqrt(jnp.where(small, 1.0, a2))
+    c1 = jnp.where(small, 1.0 - a2 / 6.0, jnp.sin(a) / a)
+    c2 = jnp.where(small, 0.5 - a2 / 24.0, (1.0 - jnp.cos(a)) / jnp.where(small, 1.0, a2))
+    x, y, z = v[..., 0], v[..., 1], v[..., 2]
+    o = jnp.zeros_like(x)
+    K = jnp.stack([jnp.stack([o, -z, y], -1), jnp.stack([z, o, -x], -1),
+                   jnp.stack([-y, x, o], -1)], -2)
+    return jnp.eye(3, dtype=v.dtype) + c1 * K + c2 * (K @ K)
+
+
+def mounted_gyro(mounting: Float[Array, "L 3"], gyro: Array) -> Array:
+    """``gyro_mounting``'s correction of gyro readings (``... G``, ``G = 3 L``): each link's
+    triad turned back by its board's rotation (``mounting``, rad), ``R g``; a triad with a
+    missing axis is missing."""
+    tri = gyro.reshape(gyro.shape[:-1] + (-1, 3))
+    ok = jnp.all(jnp.isfinite(tri), axis=-1, keepdims=True)
+    turned = jnp.einsum("lij,...lj->...li", rotation(mounting), jnp.where(ok, tri, 0.0))
+    return jnp.where(ok, turned, jnp.nan).reshape(gyro.shape)
 
 
 def timed_gyro(timing: Array, gyro: Array) -> Array:
@@ -231,7 +269,16 @@ def physical(effects: SensorEffects, robot: Robot, step_s: float | None = None) 
         c = np.asarray(effects.curve, np.float64)
         out["curve"] = {n: {"p2_deg": float(c[m, 0]), "p3_deg": float(c[m, 1])}
                         for m, n in enumerate(robot.hall_names)}
+    if effects.uses("gyro_mounting"):
+        r = np.asarray(effects.mounting, np.float64)
+        out["gyro_mounting"] = {n: {"rotation_deg": [float(x) for x in r[i]]}
+                                for i, n in enumerate(link_boards(robot))}
     return out
+
+
+def link_boards(robot: Robot) -> list[str]:
+    """Each link's gyro board by name (``gyro1`` ...: its channels' prefix)."""
+    return [f"gyro{i + 1}" for i in range(robot.n_links)]
 
 
 def from_physical(doc: dict, robot: Robot, where: str, dtype=None) -> SensorEffects:
@@ -281,8 +328,20 @@ def from_physical(doc: dict, robot: Robot, where: str, dtype=None) -> SensorEffe
         vals["curve"] = [[num(obj(x, f"curve.{n}").get(k), f"curve.{n}.{k}")
                           for k in ("p2_deg", "p3_deg")]
                          for n, x in zip(robot.hall_names, per("curve", robot.hall_names))]
+    if "gyro_mounting" in doc:
+        boards = link_boards(robot)
+        vals["mounting"] = [_triple(obj(x, f"gyro_mounting.{n}").get("rotation_deg"),
+                                    f"gyro_mounting.{n}.rotation_deg", num)
+                            for n, x in zip(boards, per("gyro_mounting", boards))]
     dt = dtype or jnp.asarray(0.0).dtype
     return SensorEffects(*(jnp.asarray(vals[k], dt) for k in LEAVES), on=e.on)
+
+
+def _triple(x, field: str, num) -> list[float]:
+    """A rotation vector of the parameter file: three numbers."""
+    if not isinstance(x, list) or len(x) != 3:
+        raise ValueError(f"effects.{field}: expected three numbers [x, y, z] in deg, got {x!r}")
+    return [num(v, field) for v in x]
 
 
 def parse_learn(text: str | None) -> tuple[str, ...]:

@@ -236,7 +236,9 @@ def build_parser(commands: Mapping[str, Callable], demo_steps: int) -> argparse.
             "gyro_timing": "where in each step the gyros' rate is taken, their delay",
             "gyro_scale": "each gyro channel's scale error",
             "play": "the joints' mechanical play",
-            "curve": "Hall curves beyond Eq. 1"}) + "; docs/fitting.md"), LEARNABLE)
+            "curve": "Hall curves beyond Eq. 1",
+            "gyro_mounting": "each gyro board's rotation on its link"}) + "; docs/fitting.md"),
+        LEARNABLE)
     t.add_argument("--batch-size", type=int, help="trials per step (default all)")
     t.add_argument("--init", help="start from this parameter file instead of the paper's")
     t.add_argument("--checkpoint", help="checkpoint file (default OUTPUT.ckpt)")
