@@ -188,7 +188,7 @@ def moments_loss(params, batch, remat_chunk):
     return sum(jnp.sum(a * b) for a, b in zip(w, (rows.z, rows.P, rows.y, rows.S)))
 
 
-@pytest.mark.parametrize("spec", ["x,y,x,y", "xz,y,xyz"])
+@pytest.mark.parametrize("spec", ["x,y,x,y", pytest.param("xz,y,xyz", marks=pytest.mark.long)])
 def test_smoothers_forward_pass_gradient_equals_the_automatic_one_float64(spec):
     """The predicted moments' cotangents (``LaneMoments.y``, ``.S``) join the filter's: the
     parameters, the time steps and the gyro readings against JAX's own reverse pass."""
@@ -203,6 +203,7 @@ def test_smoothers_forward_pass_gradient_equals_the_automatic_one_float64(spec):
 
 
 @pytest.mark.parametrize("method", ["kckf", "kf"])
+@pytest.mark.long  # 25-30 s each: the sequential smoother's automatic gradient compiles slowly
 def test_smoothed_gradient_equals_the_sequential_one(method):
     """The lanes smoother under reverse mode (the filter's hand-written pass, the gains formed
     for every row at once) against the vmapped sequential smoother's automatic gradient."""
