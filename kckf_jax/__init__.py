@@ -41,7 +41,8 @@ The public API (everything else lives in private modules; docs/architecture.md m
   Hall curve that cannot be the sensor's): ``setup_check``, ``SetupFinding``;
 * evaluation and fitting: ``rmse_table``, ``fused_hall_error``, ``fit``, ``FitConfig``,
   ``FitResult``, ``FitInterrupted``, ``initial_params``, ``loss_fn``, ``make_batch`` (and its
-  ``Batch``), ``shard_batch``;
+  ``Batch``), ``shard_batch``; ``estimate_mounting`` (each gyro board's rotation on its link
+  from the gyros alone, a fit's start for ``gyro_mounting``);
 * live filtering and deployment: ``StreamingFilter``, ``PacketParser``, ``Packet``,
   ``STATUSES``, ``low_latency``, ``export_step``; where packets come from and go (``Source``,
   which hands over packets, ``Oversized`` ones, ``Foreign`` ones from another sender and the
@@ -80,6 +81,7 @@ from ._fitting._fit import loss_fn as loss_fn
 from ._fitting._fit import make_batch as make_batch
 from ._fitting._fit import package_version as _package_version
 from ._fitting._fit import shard_batch as shard_batch
+from ._fitting._mounting import estimate_mounting as estimate_mounting
 from ._fitting._train import FitInterrupted as FitInterrupted
 from ._fitting._train import FitResult as FitResult
 from ._models._classes import KCKF as KCKF

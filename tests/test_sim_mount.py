@@ -112,3 +112,39 @@ def test_effects_named_on_the_command_line_and_refused_when_unphysical(tmp_path)
         parse_effects(["mount=-1"])
     assert main(["simulate", str(tmp_path / "s"), "--duration", "2", "--joints", "x,y",
                  "--effect", "mount=8", "--effect", "soft=10", "--quiet"]) == 0
+
+
+# ------------------------------------------------------------- the start from the gyros alone
+@pytest.mark.parametrize("spec", ["x,y,z", "x,y,x,y"])
+def test_the_boards_between_two_hinges_are_found_from_the_gyros_alone(spec):
+    """``estimate_mounting`` (the hinges' axes as the boards see them, Seel's constraint, then
+    Kabsch): a board with a hinge on each side within 1 deg of its tilt; an end board, which
+    sees one hinge, no farther from it than it was; no hinge, no change. Recorded-like gyros
+    (noise, biases, 1 % dropped readings), exact walking, tilts of 5-10 deg."""
+    from kckf_jax import estimate_mounting
+
+    sessions = [simulate(spec, "walking", seed=k, duration_s=40.0, device_seed=7,
+                         kinematics="exact", drop_prob=0.01,
+                         config=SimConfig(gyro_mount_deg=10.0)) for k in (1, 2)]
+    truth = np.array(list(sessions[0].extra_meta["simulation"]["effects"]["gyro_mount_deg"]
+                          .values()))
+    got, by = estimate_mounting(sessions[0].robot, sessions)
+    err = np.linalg.norm(got - truth, axis=1)
+    assert [len(b) for b in by] == [1] + [2] * (len(truth) - 2) + [1]
+    assert np.all(err[1:-1] < 1.0)
+    assert np.all(err[[0, -1]] < np.linalg.norm(truth[[0, -1]], axis=1))
+    none, by_none = estimate_mounting(sessions[0].robot.from_spec("xyz,xyz"), [])
+    assert not np.any(none) and by_none == [[], [], []]
+
+
+def test_kabsch_and_the_smallest_rotation():
+    from kckf_jax._fitting._mounting import board_rotation
+
+    v = np.array([0.1, -0.2, 0.05])
+    R = rotation_matrices(v)
+    e = list(np.eye(3))
+    seen = [R.T @ x for x in e[:2]]  # the board sees R' e
+    np.testing.assert_allclose(board_rotation(seen, e[:2]), v, atol=1e-12)
+    one = board_rotation(seen[:1], e[:1])  # one direction: the smallest rotation onto it
+    np.testing.assert_allclose(rotation_matrices(one) @ seen[0], e[0], atol=1e-12)
+    assert abs(one[0]) < 1e-12  # no turn about the direction itself

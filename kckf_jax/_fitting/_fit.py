@@ -44,6 +44,7 @@ from .._paths._smooth import smooth_batch
 from .._readings._batching import pad_series
 from .._readings._gaps import GapPolicy
 from .._sessions._session import Session, split_at_gaps
+from ._mounting import estimate_mounting
 from ._train import (
     AbstractLoss,
     FitInterrupted,
@@ -425,12 +426,21 @@ class FitConfig:
 
 def initial_params(sessions: Sequence[Session], config: FitConfig, dtype=None) -> Params:
     """The starting point: the paper defaults with the first session's Hall calibration, the
-    configured noise model, and small floors on terms the paper sets to zero."""
+    configured noise model, and small floors on terms the paper sets to zero; learning
+    ``gyro_mounting``, each board's rotation estimated from the gyros alone
+    (``estimate_mounting``: the hinges' axes as the boards see them)."""
     s = sessions[0]
     p = Params.paper_defaults(s.robot, s.hall_models, dtype=dtype)
     p = replace(p, hall_noise=config.hall_noise)
     p = with_floors(p)
-    return p.with_effects(config.learn) if config.learn else p
+    if not config.learn:
+        return p
+    p = p.with_effects(config.learn)
+    if "gyro_mounting" in config.learn:
+        rot, _ = estimate_mounting(s.robot, sessions)
+        p = replace(p, effects=replace(p.effects, mounting=jnp.asarray(
+            rot, p.effects.mounting.dtype)))
+    return p
 
 
 # ----------------------------------------------------------------------------- training
