@@ -312,6 +312,28 @@ def test_fit_reaches_every_learned_leaf_and_keeps_a_frozen_one(session):
         kk.FitConfig(learn=("backlash",))
 
 
+def test_the_mounting_takes_steps_in_its_own_unit(session):
+    """A board's rotation (deg, 5-12 where worn) takes Adam steps 10 times the rate and the
+    Hall exponents 10 times smaller, the rest the rate: Adam's first step moves every leaf by
+    its rate, whatever its gradient's size. A fit that learns no mounting keeps the optimiser
+    it had (``leaf_scales`` empty: its steps and a checkpoint's state as before)."""
+    from kckf_jax._fitting._fit import EXPONENT_LEAVES
+    from kckf_jax._fitting._train import optimizer
+
+    params = kk.Params.paper_defaults(ROBOT, session.hall_models).with_effects(
+        ("gyro_mounting",), some_effects(ROBOT))
+    cfg = kk.FitConfig(learn=("gyro_mounting",))._train_config()
+    assert cfg.leaf_scales == (("mounting", 10.0),)
+    assert kk.FitConfig(learn=("play",))._train_config().leaf_scales == ()
+    opt = optimizer(0.03, None, EXPONENT_LEAVES, cfg.leaf_scales)
+    grads = jax.tree_util.tree_map(lambda x: 1e-3 * jnp.ones_like(x), params)
+    step, _ = opt.update(grads, opt.init(params), params)
+    np.testing.assert_allclose(np.asarray(step.effects.mounting), -0.3, rtol=1e-4)
+    np.testing.assert_allclose(np.asarray(step.log_hall_b), -0.003, rtol=1e-4)
+    np.testing.assert_allclose(np.asarray(step.effects.play), -0.03, rtol=1e-4)
+    np.testing.assert_allclose(np.asarray(step.log_q), -0.03, rtol=1e-4)
+
+
 def test_a_fit_that_makes_the_filter_lag_says_so():
     """On motion capture 30 ms late, the timing learned from the RMSE goes below 0 (the filter
     learns to lag): the fit warns, naming the remedy; on motion capture on time it does not."""

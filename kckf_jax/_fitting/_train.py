@@ -63,6 +63,8 @@ class TrainConfig:
         learning_rate: Adam step size on the unconstrained leaves.
         clip_norm: global gradient-norm clip (``optax.clip_by_global_norm``); ``None``: none.
         exponent_leaves: leaves that take steps ``EXPONENT_LR_SCALE`` times smaller.
+        leaf_scales: ``(name, factor)`` pairs: the named leaves take steps ``factor`` times
+            the learning rate (a leaf whose typical size is far from 1 in its unit).
         freeze: names of leaves to keep fixed.
         val_every: validate every this many steps (and at the last step).
         patience: stop after this many validations without improvement.
@@ -77,6 +79,7 @@ class TrainConfig:
     learning_rate: float = 0.03
     clip_norm: float | None = 1.0
     exponent_leaves: tuple[str, ...] = ()
+    leaf_scales: tuple[tuple[str, float], ...] = ()
     freeze: tuple[str, ...] = ()
     val_every: int = 10
     patience: int = 5
@@ -99,23 +102,29 @@ EXPONENT_LR_SCALE = 0.1
 
 @functools.lru_cache(maxsize=16)
 def optimizer(learning_rate: float, clip_norm: float | None,
-              exponent_leaves: tuple[str, ...] = ()) -> optax.GradientTransformation:
-    """Adam after global-norm clipping; smaller steps for ``exponent_leaves``.
+              exponent_leaves: tuple[str, ...] = (),
+              leaf_scales: tuple[tuple[str, float], ...] = ()) -> optax.GradientTransformation:
+    """Adam after global-norm clipping; ``EXPONENT_LR_SCALE`` times smaller steps for
+    ``exponent_leaves``, ``factor`` times the rate for each ``(name, factor)`` of
+    ``leaf_scales`` (a leaf named in both takes the latter).
 
     Cached, so that fits with the same settings share one compiled training step."""
-    if not exponent_leaves:
+    groups = {n: "exponent" for n in exponent_leaves} | {n: n for n, _ in leaf_scales}
+    if not groups:
         adam = optax.adam(learning_rate)
     else:
         def labels(params):
             def label(path, _):
-                names = {getattr(k, "name", None) for k in path}
-                return "exponent" if names & set(exponent_leaves) else "default"
+                names = [getattr(k, "name", None) for k in path]
+                return next((groups[n] for n in reversed(names) if n in groups), "default")
 
             return jax.tree_util.tree_map_with_path(label, params)
 
+        rates = {"default": learning_rate, "exponent": learning_rate * EXPONENT_LR_SCALE}
+        rates |= {n: learning_rate * f for n, f in leaf_scales}
         adam = optax.multi_transform(
-            {"default": optax.adam(learning_rate),
-             "exponent": optax.adam(learning_rate * EXPONENT_LR_SCALE)}, labels)
+            {g: optax.adam(rates[g]) for g in ["default", *dict.fromkeys(groups.values())]},
+            labels)
     return adam if clip_norm is None else optax.chain(optax.clip_by_global_norm(clip_norm),
                                                       adam)
 
@@ -233,7 +242,8 @@ def train(
     val_loss = val_loss or loss
     params = place(params)
     diff, static = eqx.partition(params, filter_spec(params, config.freeze))
-    opt = optimizer(config.learning_rate, config.clip_norm, config.exponent_leaves)
+    opt = optimizer(config.learning_rate, config.clip_norm, config.exponent_leaves,
+                    config.leaf_scales)
     opt_state = place(opt.init(diff))
     best = {"step": 0, "loss": math.inf}
     best_params = params

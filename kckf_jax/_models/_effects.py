@@ -49,7 +49,8 @@ judged (``_readings._prepare``): a faulty reading is judged on what the sensor g
 
 Leaves are unconstrained and in units where a typical size is about 1 (the optimiser's steps
 are about its learning rate): play and curve in deg, gyro scale in %, the offset in units of
-10 ms; the physical values are properties.
+10 ms; the physical values are properties. The mounting is in deg too, where a worn board's
+is 5-12: the fit gives its leaf steps 10 times the rate (``_fitting._fit.LEAF_LR_SCALES``).
 """
 
 from __future__ import annotations
