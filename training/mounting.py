@@ -43,7 +43,7 @@ def sessions(joints: str, kind: str, device: int, duration: float, sim: dict) ->
 
 def fitted(train, val, steps: int, learn: tuple) -> dict:
     # One rate for every fit: the mounting's leaf (deg) takes steps 10 times it
-    # (``_fit.LEAF_LR_SCALES``), the rest the default 0.03.
+    # (``_effects.STEP_SCALES``), the rest the default 0.03.
     cfg = kk.FitConfig(steps=steps, method="kckf3d", learn=learn, val_every=10,
                        patience=steps)
     t0 = time.time()
@@ -104,7 +104,7 @@ def main() -> None:
         print(json.dumps(row), flush=True)
     out = {"joints": args.joints, "kind": args.kind, "tilt_deg": args.tilt,
            "soft_hz": args.soft, "steps": steps, "method": "kckf3d",
-           "learning_rate": "0.03, the mounting's leaf 10x (_fit.LEAF_LR_SCALES)",
+           "learning_rate": "0.03, the mounting's leaf 10x (_effects.STEP_SCALES)",
            "fits_run": fits, "rows": rows}
     if not args.quick:
         with open(out_path, "w") as f:

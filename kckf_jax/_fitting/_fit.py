@@ -33,7 +33,7 @@ from .._models._classes import (
     method_name,
     register_model,
 )
-from .._models._effects import EFFECT_OF_LEAF, EFFECTS, angle_rates
+from .._models._effects import EFFECT_OF_LEAF, EFFECTS, STEP_SCALES, angle_rates
 from .._models._fault_policy import FaultPolicy
 from .._models._kernel import SensorSeries
 from .._models._params import ALL_LEAVES, Params, with_floors
@@ -54,13 +54,7 @@ from ._train import (
 )
 
 RAD2DEG = 180.0 / math.pi
-#: Leaves that sit in an exponent (Eq. 1's ``b`` and ``d``): smaller Adam steps.
-EXPONENT_LEAVES = ("log_hall_b", "log_hall_d")
-#: Leaves whose typical size in their unit is far from 1, with their Adam steps' factor: a
-#: board's rotation on its link (``effects.mounting``, deg) is 5-12 deg where worn, so it
-#: takes steps 10 times the rate (0.3 deg a step at the default 0.03) while the log-noise
-#: leaves keep theirs (docs/fitting.md: one rate of 0.3 for all let them wander).
-LEAF_LR_SCALES = (("mounting", 10.0),)
+EXPONENT_LEAVES = ("log_hall_b", "log_hall_d")  # in Eq. 1's exponents: smaller Adam steps
 
 
 # ----------------------------------------------------------------------------- data
@@ -424,12 +418,10 @@ class FitConfig:
         """The settings of the one training loop."""
         return TrainConfig(
             steps=self.steps, learning_rate=self.learning_rate, clip_norm=self.clip_norm,
-            exponent_leaves=EXPONENT_LEAVES,
-            leaf_scales=tuple((n, f) for n, f in LEAF_LR_SCALES
-                              if EFFECT_OF_LEAF.get(n) in self.learn),
-            freeze=self.freeze, val_every=self.val_every,
-            patience=self.patience, batch_size=self.batch_size,
-            checkpoint_every=self.checkpoint_every, seed=self.seed)
+            exponent_leaves=EXPONENT_LEAVES, leaf_scales=tuple(
+                (n, f) for n, f in STEP_SCALES if EFFECT_OF_LEAF[n] in self.learn),
+            freeze=self.freeze, val_every=self.val_every, patience=self.patience,
+            batch_size=self.batch_size, checkpoint_every=self.checkpoint_every, seed=self.seed)
 
 
 def initial_params(sessions: Sequence[Session], config: FitConfig, dtype=None) -> Params:

@@ -50,7 +50,7 @@ judged (``_readings._prepare``): a faulty reading is judged on what the sensor g
 Leaves are unconstrained and in units where a typical size is about 1 (the optimiser's steps
 are about its learning rate): play and curve in deg, gyro scale in %, the offset in units of
 10 ms; the physical values are properties. The mounting is in deg too, where a worn board's
-is 5-12: the fit gives its leaf steps 10 times the rate (``_fitting._fit.LEAF_LR_SCALES``).
+is 5-12: the fit gives its leaf steps 10 times the rate (``STEP_SCALES``).
 """
 
 from __future__ import annotations
@@ -73,6 +73,11 @@ EFFECTS = ("offset", "gyro_timing", "gyro_scale", "play", "curve", "gyro_mountin
 LEAVES = ("offset", "timing", "gyro_scale", "play", "curve", "mounting")
 #: The effect each leaf belongs to.
 EFFECT_OF_LEAF = dict(zip(LEAVES, EFFECTS))
+#: Leaves whose typical size in their unit is far from 1, with their Adam steps' factor (the
+#: fit's ``TrainConfig.leaf_scales`` when their effect is learned): a worn board's rotation
+#: (deg) is 5-12, so it takes 0.3 deg a step at the default rate 0.03 while the log-noise
+#: leaves keep 0.03 (docs/fitting.md: one rate of 0.3 for all let them wander).
+STEP_SCALES = (("mounting", 10.0),)
 #: The joint rate at which the play's correction is 76 % of its size (tanh(1)): 5 deg/s, about
 #: 4 times the largest gyro bias of a pair (LSM6DSO zero-rate level +-1 dps each), so an
 #: unknown bias moves the correction of a still joint by at most a quarter of its size.
