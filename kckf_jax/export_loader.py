@@ -36,6 +36,7 @@ import struct
 import sys
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 #: XLA's kernels on the calling thread (no thread hand-offs per packet); a flag of jax
@@ -79,6 +80,20 @@ TIMEVAL = struct.Struct("@ll")
 MAX_PACKET_BYTES = 8192
 
 
+def _packed_call(exported, n: int):
+    """The exported step ``(s, x) -> (s', out)`` jitted as one array in, one out: ``[s, x] ->
+    [s', out]`` (and the parameter vector first when passed). A jitted call's cost on a CPU
+    grows with its arguments and results: 9.3 us for one in and one out against 11.8 for two
+    and two, measured with a step that does nothing (``benchmarks/exported_step.py``). Traced
+    once (calling ``exported.call`` directly re-traces per call)."""
+
+    def packed(*args):
+        *p, buf = args
+        return jnp.concatenate(exported.call(*p, buf[:n], buf[n:]))
+
+    return jax.jit(packed)
+
+
 class ExportedStep:
     """The exported step with the stream's packet rules (statuses, gaps, faulty readings).
 
@@ -93,8 +108,7 @@ class ExportedStep:
             n = int.from_bytes(f.read(8), "little")
             self.header = json.loads(f.read(n).decode())
             self.exported = jax.export.deserialize(bytearray(f.read()))
-        # One jitted callable, traced once (calling exported.call directly re-traces per call).
-        self._call = jax.jit(self.exported.call)
+        self._call = _packed_call(self.exported, len(self.header["initial_state"]))
         h = self.header
         if h["dtype"] == "float64":
             jax.config.update("jax_enable_x64", True)
@@ -113,30 +127,32 @@ class ExportedStep:
         self.on_gap = on_gap or gaps.get("on_gap", "predict")
         self.max_predict_s = float(max_predict_s if max_predict_s is not None
                                    else gaps.get("max_predict_s", 1.0))
-        self._x = np.empty(h["x_size"], self.dtype)
+        self._n = len(h["initial_state"])
+        self._buf = np.empty(self._n + h["x_size"], self.dtype)  # [state, dt, readings]
         self._K = len(h["angle_names"])
         self.reset()
 
+    @property
+    def state(self) -> np.ndarray:
+        """The filter's state after the last packet used (a copy: the flat vector the step
+        takes, ``header["initial_state"]``'s layout)."""
+        return self._buf[: self._n].copy()
+
     def reset(self) -> None:
-        self.state = jax.device_put(np.asarray(self.header["initial_state"], self.dtype))
+        self._buf[: self._n] = np.asarray(self.header["initial_state"], self.dtype)
         self.t_prev = None
         self._out = np.zeros(2 * self._K + 1)  # no packet yet: no code
 
     def _step(self, dt: float, readings: np.ndarray):
-        x = self._x
-        x[0] = dt
-        x[1:] = readings
-        if self.params is None:
-            state, out = self._call(self.state, x)
-        else:
-            state, out = self._call(self.params, self.state, x)
-        out = np.asarray(out)
-        K = self._K
-        if out[2 * K] < 0.5:
-            return None
-        self.state = state
-        self._out = out
-        return out[:K]
+        buf, n, K = self._buf, self._n, self._K
+        buf[n] = dt
+        buf[n + 1:] = readings
+        o = np.asarray(self._call(buf) if self.params is None else self._call(self.params, buf))
+        if o[n + 2 * K] < 0.5:
+            return None  # the state kept
+        buf[:n] = o[:n]
+        self._out = o[n:]
+        return self._out[:K]
 
     @property
     def codes(self) -> np.ndarray:
@@ -148,7 +164,7 @@ class ExportedStep:
     def push_array(self, t: float, readings: np.ndarray) -> np.ndarray | None:
         """Angles (rad, ``header["angle_names"]`` order) after the packet at ``t``, or None
         (not after the previous packet, or the update was not finite: the state kept)."""
-        return self._push(t, np.asarray(readings, np.float64))[0]
+        return self._push(t, readings)[0]
 
     def _push(self, t: float, readings: np.ndarray):
         """``(angles or None, status, extra)`` for a packet at ``t`` with these readings."""

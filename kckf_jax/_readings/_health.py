@@ -155,6 +155,23 @@ def _curve(params):
     return hall_exponentials(*coeffs), jax.lax.stop_gradient(params.sigma_hall_v)
 
 
+def _per_sensor(x):
+    """A joint axis's value for each of its two Hall sensors (``... J`` -> ``... M``: the
+    sensors of axis ``j`` are ``2j`` and ``2j + 1``, ``Robot.hall_joint_axis``): a broadcast,
+    not a gather (in the stream's one-kernel step a gather is a loop of its own)."""
+    return jnp.repeat(x, 2, axis=-1)
+
+
+def _per_joint(x):
+    """The sum over each joint axis's two Hall sensors (``... M`` -> ``... J``)."""
+    return x[..., 0::2] + x[..., 1::2]
+
+
+def _partner(x):
+    """Each Hall sensor's value at the other sensor of its joint axis (``... M``)."""
+    return jnp.flip(x.reshape(x.shape[:-1] + (-1, 2)), axis=-1).reshape(x.shape)
+
+
 def health_step(params, h: Health, dt, gyro, hall_v, exact: bool = False):
     """One row (``dt`` s, ``gyro`` ``G`` rad/s and ``hall_v`` ``M`` V as ``_screen`` leaves
     them, before any stand-in; any leading axes): ``(state, gyro, hall_v, gyro_code,
@@ -222,23 +239,23 @@ def health_step(params, h: Health, dt, gyro, hall_v, exact: bool = False):
     g_last = jnp.where(read, gyro, h.g_last)
     gyro = jnp.where(jnp.isnan(g_used), h.gyro, g_used)
     rate = gyro[..., plus[:J]] - gyro[..., minus[:J]]  # (.., J) joint rates
-    joint = robot.hall_joint_axis  # (M,) joint axis of every sensor
     gap = dt > RESTART_S
     fresh = gap | ~h.ref_ok
     ref = h.ref + jnp.where(gap, 0.0, dt) * rate
-    per_sensor_move = (dt * rate)[..., joint]
+    per_sensor_move = _per_sensor(dt * rate)
     step_move = jnp.abs(per_sensor_move)
 
     ok = jnp.isfinite(hall_v)
     v = jnp.where(ok, hall_v, 1.65)
     angle, slope = hall_angle_and_slope(v, (w1, w2), (k1, k2))
-    e = angle - ref[..., joint]  # residual against the reference
-    judged = ok & jnp.isfinite(h.last_e) & ~fresh[..., joint]
+    e = angle - _per_sensor(ref)  # residual against the reference
+    fresh_m = _per_sensor(fresh)
+    judged = ok & jnp.isfinite(h.last_e) & ~fresh_m
     expect = (2.0 * (slope * sigma_v) ** 2
               + (MOTION_FRACTION * step_move + MOTION_FLOOR_RAD) ** 2)
     z = jnp.where(judged, (e - h.last_e) ** 2 / expect, 0.0)
     a = jnp.minimum(1.0, dt / ROUGH_TAU_S)
-    rough = jnp.where(judged, h.rough + a * (z - h.rough), jnp.where(fresh[..., joint], 0.0,
+    rough = jnp.where(judged, h.rough + a * (z - h.rough), jnp.where(fresh_m, 0.0,
                                                                   h.rough))
     # The two sensors of a joint axis measure one angle under any kinematics, so their
     # difference moves only by their noise (and their curves' disagreement, a share of the
@@ -259,22 +276,20 @@ def health_step(params, h: Health, dt, gyro, hall_v, exact: bool = False):
                       + 2.0 * (MOTION_FRACTION * pair_move + MOTION_FLOOR_RAD) ** 2), 0.0)
     pair_rough = jnp.where(pair_judged, h.pair_rough + a * (zp - h.pair_rough),
                            jnp.where(fresh, 0.0, h.pair_rough))
-    partner = np.arange(robot.n_hall) ^ 1
-    partner_out = ~(ok & ~h.isolated)[..., partner]
+    partner_out = ~_partner(ok & ~h.isolated)
     same = ok & (v == h.last_v)
     still = jnp.where(same, h.still_s + dt, 0.0)
     moved = jnp.where(same, h.moved + step_move, 0.0)
     stuck = same & (still >= STUCK_S) & (moved >= STUCK_MOVE_RAD)
-    noisy = ok & (rough > ROUGH_HIGH) & ((pair_rough[..., joint] > ROUGH_HIGH) | partner_out)
+    noisy = ok & (rough > ROUGH_HIGH) & ((_per_sensor(pair_rough) > ROUGH_HIGH) | partner_out)
     calm = ok & ~noisy & ~stuck & (rough < ROUGH_LOW)
     calm_s = jnp.where(h.isolated & calm, h.calm_s + dt, 0.0)
     isolated = (h.isolated & (calm_s < READMIT_S)) | noisy | stuck
     use = ok & ~isolated
 
     # The reference: set from the trusted sensors where it starts, else pulled towards them.
-    onehot = np.asarray(joint[:, None] == np.arange(J)[None, :], dtype)  # (M, J)
-    wsum = jnp.sum(use[..., :, None] * onehot, axis=-2)
-    asum = jnp.sum(jnp.where(use, angle, 0.0)[..., :, None] * onehot, axis=-2)
+    wsum = _per_joint(use.astype(dtype))
+    asum = _per_joint(jnp.where(use, angle, 0.0))
     mean = asum / jnp.maximum(wsum, 1.0)
     have = wsum > 0
     pull = jnp.minimum(1.0, dt / REF_TAU_S)
@@ -282,10 +297,11 @@ def health_step(params, h: Health, dt, gyro, hall_v, exact: bool = False):
     ref_ok = (h.ref_ok & ~gap) | have
     # A missing reading keeps the last residual (the reference goes on with the gyros), so a
     # sensor whose every other reading is dropped is still judged; a gap forgets it.
-    last_e = jnp.where(ok, angle - ref[..., joint], jnp.where(fresh[..., joint], np.nan, h.last_e))
+    ref_m = _per_sensor(ref)
+    last_e = jnp.where(ok, angle - ref_m, jnp.where(_per_sensor(fresh), np.nan, h.last_e))
     # Each joint's mean residual over its used sensors, averaged fast and slow (forgotten at
     # a gap): how far the gyros' joint rate drifts from the Hall sensors.
-    rsum = jnp.sum(jnp.where(use, angle - ref[..., joint], 0.0)[..., :, None] * onehot, axis=-2)
+    rsum = _per_joint(jnp.where(use, angle - ref_m, 0.0))
     cm = rsum / jnp.maximum(wsum, 1.0)
     cm_fast = jnp.where(gap, np.nan, h.cm_fast)
     cm_slow = jnp.where(gap, np.nan, h.cm_slow)
