@@ -103,6 +103,7 @@ def test_gyro_timing_of_a_recording_is_the_streams():
         np.testing.assert_allclose(got[k], want, rtol=1e-14, atol=1e-15)
 
 
+@pytest.mark.long  # a heavy check beside a lighter default one (the default run within 4 min)
 def test_missing_readings_stay_missing_without_nan_gradients(session):
     params = kk.Params.paper_defaults(ROBOT, session.hall_models)
     effects = some_effects(ROBOT)

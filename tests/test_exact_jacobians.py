@@ -134,7 +134,7 @@ def test_joint_rates_jacobians_are_jacfwds(spec):
             assert not np.asarray(new[1]).any()  # one-axis joints: no angle dependence
 
 
-@pytest.mark.parametrize("spec", ["xyz,xyz,xyz", "xy,z"])
+@pytest.mark.parametrize("spec", [pytest.param("xyz,xyz,xyz", marks=pytest.mark.long), "xy,z"])
 def test_joint_rates_under_vmap_jit_and_differentiated_again(spec):
     """The closed forms batch, compile, and their own derivatives (the fit's gradient
     differentiates the step, ``F`` included) are ``jacfwd``'s of ``jacfwd``."""

@@ -52,8 +52,8 @@ def test_the_entries_are_the_closed_forms(spec):
 
 
 @pytest.mark.parametrize(("seed", "spec", "noise"), [
-    (0, "xyz,xyz,xyz", "voltage"), (1, "x,y,x,y", "angle"), (2, "xy,z", "voltage"),
-    (3, "yz,x,xz", "angle")])
+    pytest.param(0, "xyz,xyz,xyz", "voltage", marks=pytest.mark.long), (1, "x,y,x,y", "angle"),
+    (2, "xy,z", "voltage"), pytest.param(3, "yz,x,xz", "angle", marks=pytest.mark.long)])
 def test_the_lanes_equal_the_sequential_path(seed, spec, noise):
     """Three uneven trials (padded), irregular steps, 10 % missing readings, random
     parameters, one trial with a 1e100 s step (its noise overflows: the row is skipped):
@@ -115,6 +115,7 @@ def test_float32_recorded_like_walking_stays_stable():
     assert np.linalg.eigvalsh(P).min() > 0
 
 
+@pytest.mark.long  # a heavy check beside a lighter default one (the default run within 4 min)
 def test_the_packet_step_is_the_step():
     """The stream's and the export's forward-only step of kckf3d (``packet_step``: the entry
     form on one lane) equals the model's step (the matrix form) row by row, float64, random

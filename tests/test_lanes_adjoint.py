@@ -76,6 +76,7 @@ def test_parameter_gradient_equals_the_automatic_one_float64(spec):
     assert_close(g0, g1, 1e-10)
 
 
+@pytest.mark.long  # a heavy check beside a lighter default one (the default run within 4 min)
 def test_a_skipped_row_passes_its_cotangents_through_as_the_sequential_path_does():
     """The overflowing row is skipped; the gradient equals the sequential path's. JAX's own
     transpose of the lanes step spread the skipped step's NaN into every leaf; here only
@@ -91,6 +92,7 @@ def test_a_skipped_row_passes_its_cotangents_through_as_the_sequential_path_does
     assert_close(finite(got), finite(ref), 1e-8)
 
 
+@pytest.mark.long  # a heavy check beside a lighter default one (the default run within 4 min)
 def test_gradient_in_the_time_steps_gyro_readings_and_entering_state():
     """Cotangents formed only when asked for: the time steps, the gyro readings (through the
     held rates) and the entering state, held rates included."""
@@ -219,6 +221,7 @@ def test_smoothed_gradient_equals_the_sequential_one(method):
     assert_close((d0.dt, d0.gyro, d0.hall_v), (d1.dt, d1.gyro, d1.hall_v), 1e-8)
 
 
+@pytest.mark.long  # a heavy check beside a lighter default one (the default run within 4 min)
 def test_smoothed_gradient_with_a_skipped_row_equals_finite_differences_float64():
     """Central differences of the smoothed loss on lanes along a random direction, with the
     overflowing row skipped. Its non-finite moments reach no derivative (the sequential

@@ -365,6 +365,7 @@ def test_experiment_keys_and_markov_wins():
     assert {"kf_deg", "mkf_deg"} <= set(out["details"]["table2"])
 
 
+@pytest.mark.long  # a heavy check beside a lighter default one (the default run within 4 min)
 def test_fitting_lowers_heldout_error():
     out = fit_markov("mkf", train_trials=2, test_trials=2, steps=5, learning_rate=0.1,
                      config=GaitConfig(duration_s=8.0))

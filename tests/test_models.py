@@ -91,6 +91,7 @@ class Tuned(kk.KCKF):
     label: ClassVar[str] = "KCKF tuned"
 
 
+@pytest.mark.long  # a heavy check beside a lighter default one (the default run within 4 min)
 def test_a_registered_model_runs_through_every_consumer(tmp_path):
     assert kk.register_model(Tuned()) == "kckf_tuned"
     assert kk.register_model(Tuned()) == "kckf_tuned"  # again: the same model, a no-op

@@ -71,6 +71,7 @@ def test_the_segments_pass_gives_them_too():
         np.testing.assert_allclose(np.asarray(got, np.float64), ref, rtol=1e-9, atol=1e-9)
 
 
+@pytest.mark.long  # a heavy check beside a lighter default one (the default run within 4 min)
 def test_the_steady_pass_gives_them_too():
     """A regular recording on the steady path (the converged map after the head rows): each
     row's innovations, read back from its new joint angles, equal the second pass's; ``x,x,y``
@@ -121,7 +122,8 @@ def test_a_baseline_or_a_path_without_them_carries_none():
     assert est.path == "plain" and est.innovations is None
 
 
-@pytest.mark.parametrize("layout", ["sequential", "lanes", "steady"])
+@pytest.mark.parametrize("layout", ["sequential", pytest.param("lanes", marks=pytest.mark.long),
+                                    pytest.param("steady", marks=pytest.mark.long)])
 def test_the_smoother_forward_pass_gives_them_too(layout):
     """``kckf evaluate --smooth``: the smoother's forward pass is the filter, and each layout
     keeps its innovations (the sequential one from its moments, the lanes' scan, the steady

@@ -103,6 +103,7 @@ def test_parallel_equals_sequential_and_the_standard_kf_never_steady():
         run_filter(params, series, "kf", path=SMALL)
 
 
+@pytest.mark.long  # a heavy check beside a lighter default one (the default run within 4 min)
 def test_default_steady_at_full_size_float64():
     """The defaults on the paper's parameters: ``auto`` takes the steady path past 4,096 rows
     and agrees with the sequential filter."""
@@ -399,6 +400,7 @@ def test_auto_under_a_callers_trace_decides_on_shapes_as_documented():
     assert Auto(lanes=Lanes(min_trials=4)).batch_layout(4) == "lanes"
 
 
+@pytest.mark.long  # a heavy check beside a lighter default one (the default run within 4 min)
 def test_auto_weighs_compile_time_for_the_runs_it_is_told_and_repairs_it_foresees():
     """``Auto(runs=1)`` (the command's policy) takes the lanes or segments path only where its
     compile plus one run is estimated shorter than the sequential path's; a stretch without a

@@ -149,6 +149,7 @@ def test_a_failed_check_is_repaired_else_falls_back_to_the_sequential_path():
     close(est.angles, ref.angles, 1e-9)
 
 
+@pytest.mark.long  # a heavy check beside a lighter default one (the default run within 4 min)
 def test_auto_takes_segments_for_long_recordings_only():
     """``Auto``: segments for one recording long enough to cut into ``min_segments``
     segments, with the reason otherwise; never for a fit's loss (its gradient); the

@@ -275,6 +275,7 @@ def test_udp_loopback_equals_batch(session, tmp_path, dtype, tol):
     assert np.max(np.abs(got - ref)) <= tol
 
 
+@pytest.mark.long  # a heavy check beside a lighter default one (the default run within 4 min)
 def test_serial_pty_with_line_noise(session, tmp_path):
     path = str(tmp_path / "s")
     write_session(session, path)
