@@ -298,7 +298,7 @@ def health_step(params, h: Health, dt, gyro, hall_v, exact: bool = False):
     # A missing reading keeps the last residual (the reference goes on with the gyros), so a
     # sensor whose every other reading is dropped is still judged; a gap forgets it.
     ref_m = _per_sensor(ref)
-    last_e = jnp.where(ok, angle - ref_m, jnp.where(_per_sensor(fresh), np.nan, h.last_e))
+    last_e = jnp.where(ok, angle - ref_m, jnp.where(fresh_m, np.nan, h.last_e))
     # Each joint's mean residual over its used sensors, averaged fast and slow (forgotten at
     # a gap): how far the gyros' joint rate drifts from the Hall sensors.
     rsum = _per_joint(jnp.where(use, angle - ref_m, 0.0))
