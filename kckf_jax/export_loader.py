@@ -84,8 +84,9 @@ def _packed_call(exported, n: int):
     """The exported step ``(s, x) -> (s', out)`` jitted as one array in, one out: ``[s, x] ->
     [s', out]`` (and the parameter vector first when passed). A jitted call's cost on a CPU
     grows with its arguments and results: 9.3 us for one in and one out against 11.8 for two
-    and two, measured with a step that does nothing (``benchmarks/exported_step.py``). Traced
-    once (calling ``exported.call`` directly re-traces per call)."""
+    and two, for a call that does nothing (one process, best of three: benchmarks/README.md,
+    issue 46; the step itself: ``benchmarks/exported_step.py``). Traced once (calling
+    ``exported.call`` directly re-traces per call)."""
 
     def packed(*args):
         *p, buf = args
