@@ -88,18 +88,21 @@ def _axis_rotation(axis: str, c, s):
     return [[c, _neg(s), 0], [s, c, 0], [0, 0, 1]]
 
 
-def joint_rate_entries(axes: Sequence[str], angles: list, g_parent: list, g_child: list):
+def joint_rate_entries(axes: Sequence[str], angles: list | None, g_parent: list, g_child: list,
+                       trig: list | None = None):
     """``_exact.joint_rate_jacobians`` as entries (each an array over the lanes, or a
     constant): ``u`` (``m``), ``Du`` (``m x m``) and ``Dg`` (``m x 6``: the parent's gyro
-    channels, then the child's), the same closed forms."""
+    channels, then the child's), the same closed forms. ``trig``: the angles' ``(cos,
+    sin)`` pairs where already computed (then ``angles`` is not read)."""
     m = len(axes)
     if m == 1:
         a = AXES.index(axes[0])
         Dg = [[0] * 6]
         Dg[0][a], Dg[0][3 + a] = -1, 1
         return [_add(g_child[a], _neg(g_parent[a]))], [[0]], Dg
-    rots = [_axis_rotation(ax, jnp.cos(th), jnp.sin(th)) for ax, th in zip(axes, angles,
-                                                                          strict=True)]
+    if trig is None:
+        trig = [(jnp.cos(th), jnp.sin(th)) for th in angles]
+    rots = [_axis_rotation(ax, c, s) for ax, (c, s) in zip(axes, trig, strict=True)]
     R = rots[0]
     for Rk in rots[1:]:
         R = _matmul(R, Rk)
@@ -142,15 +145,18 @@ def joint_rate_entries(axes: Sequence[str], angles: list, g_parent: list, g_chil
 
 
 # ---------------------------------------------------------------------------- the step
-def prediction_rows(model: _exact.ExactModel, theta, gyro):
+def prediction_rows(model: _exact.ExactModel, theta, gyro, trig: list | None = None):
     """The joint rows of ``E`` (``F = I + dt E``) as ``(column, entry)`` lists, and the
     coordinates' rates ``u``, at the filtered ``theta`` (``J`` arrays ``B``) with the bias-free
-    gyro rates ``gyro`` (``G`` arrays ``B``)."""
+    gyro rates ``gyro`` (``G`` arrays ``B``). ``trig``: ``theta``'s ``(cos, sin)`` pairs where
+    already computed (then ``theta`` is not read)."""
     col = {c: model.J + i for i, c in enumerate(model.channels)}
     rows, rates = [], []
     for i, (axes, sl) in enumerate(zip(model.robot.joints, model.joint_slices, strict=True)):
         g_p, g_c = gyro[3 * i:3 * i + 3], gyro[3 * i + 3:3 * i + 6]
-        u, Du, Dg = joint_rate_entries(axes, [theta[k] for k in sl], g_p, g_c)
+        u, Du, Dg = joint_rate_entries(
+            axes, None if trig is not None else [theta[k] for k in sl], g_p, g_c,
+            None if trig is None else [trig[k] for k in sl])
         rates += u
         for a in range(len(sl)):
             entries = [(sl[b], Du[a][b]) for b in range(len(sl))]
@@ -171,10 +177,12 @@ def times(e, x):
 
 def entry_step(model: _exact.ExactModel, z: Float[Array, "Nz B"],
               P: Float[Array, "Nz Nz B"], hold: Float[Array, "G B"], ts: Float[Array, " B"],
-              h, rh, vh, q: Float[Array, "Nz B"]):
+              h, rh, vh, q: Float[Array, "Nz B"], tape: list | None = None):
     """One row on lanes (``B``: any trailing lane axes): ``_exact.exact_step``'s predict and
     updates, ``q`` the process noise's diagonal. Returns the new ``z``, ``P`` and each joint
-    coordinate's innovation and its variance (``J B``)."""
+    coordinate's innovation and its variance (``J B``). ``tape``: a list that every scalar
+    update appends its gain ``k`` (``Nz B``) and ``w = nu / s`` (``B``; both zero where the
+    update is not used) to, for the reverse pass (``_paths/_exact_adjoint``)."""
     J = model.J
     dtype = z.dtype
     beta_col = {c: i for i, c in enumerate(model.channels)}
@@ -205,6 +213,8 @@ def entry_step(model: _exact.ExactModel, z: Float[Array, "Nz B"],
         ss.append(s)
         ok = vh[i] & (s > 0)
         k = jnp.where(ok[None], c / jnp.where(ok, s, 1.0)[None], 0.0)
+        if tape is not None:
+            tape.append((k, jnp.where(ok, nu / jnp.where(ok, s, 1.0), 0.0)))
         zn = zn + k * jnp.where(ok, nu, 0.0)[None]
         Pn = Pn - k[:, None] * c[None] - c[:, None] * k[None] + s[None, None] * k[:, None] * k[None]
     Pn = 0.5 * (Pn + jnp.moveaxis(Pn, 0, 1))

@@ -79,12 +79,14 @@ class Auto(AbstractPath):
         than the sequential path's at every batch measured, where a filter run once is done
         sooner on the sequential path below ``Lanes.min_trials`` (the lanes program compiles
         longer; docs/performance.md; the figures: benchmarks/README.md, "Measurements behind
-        the paths' choices"); but not ``kckf3d``'s lanes step, whose gradient is JAX's own
-        and slower than the sequential path's (``Lanes.exact``). It keeps
-        every row's state and gains (about 1.1 kB per trial-step with the rows' inputs), so a
-        gradient the sequential path would chunk for memory keeps ``lanes`` as it is."""
+        the paths' choices"); ``kckf3d``'s lanes step has its own (``_exact_adjoint``). It
+        keeps every row's state and gains (about 1.1 kB per trial-step with the rows' inputs
+        for the linear KCKF), so a gradient the sequential path would chunk for memory keeps
+        ``lanes`` as it is; but ``kckf3d``'s keeps its whole covariance per row (2.9 kB a
+        trial-row for ``xyz,xyz,xyz``), so such a gradient of ``kckf3d`` takes the chunked
+        sequential path (``Lanes.exact``)."""
         lanes = Lanes(min_trials=1) if gradient and remat_chunk is None else self.lanes
-        if gradient:
+        if gradient and remat_chunk is not None:
             lanes = dataclasses.replace(lanes, exact=False)
         return Auto(steady=self.steady, lanes=lanes, segments=None,
                     sequential=Sequential(remat_chunk), before=self.before)

@@ -28,6 +28,7 @@ from .._models._exact_entries import angle_variances, entry_estimate, entry_step
 from .._models._kalman import fused_pairs
 from .._models._kernel import Estimate, FilterInput, FilterState, hall_measurements
 from .._models._params import Params
+from ._exact_adjoint import exact_scan_rows
 
 
 def exact_lanes(method: str) -> bool:
@@ -84,36 +85,46 @@ def exact_lane_inputs(params: Params, model: _exact.ExactModel, series: FilterIn
 
 def exact_lane_scan(model: _exact.ExactModel, z0: Float[Array, "B Nz"],
                     P0: Float[Array, "B Nz Nz"], hold0: Float[Array, "B G"],
-                    inputs: ExactLaneInputs) -> tuple[tuple, ExactLaneRows]:
+                    inputs: ExactLaneInputs, by_hand: bool = True) -> tuple[tuple, ExactLaneRows]:
     """The filter over every row, trials as lanes: the final ``(z, P, hold)`` (lanes first)
-    and the rows' ``ExactLaneRows``."""
+    and the rows' ``ExactLaneRows``. Its reverse pass is the hand-written one
+    (``_exact_adjoint``); ``by_hand=False``: JAX's own, each row recomputed (the tests'
+    reference)."""
 
-    @jax.checkpoint
-    def body(carry, row: ExactLaneInputs):
+    def body(carry, row: ExactLaneInputs, record: bool = False):
         z, P, hold = carry
-        zn, Pn, nu, s = entry_step(model, z, P, hold, row.ts, row.h, row.rh, row.vh, row.q)
+        tape = [] if record else None
+        zn, Pn, nu, s = entry_step(model, z, P, hold, row.ts, row.h, row.rh, row.vh, row.q,
+                                   tape=tape)
         fin = jnp.isfinite(zn).all(axis=0) & jnp.isfinite(Pn).all(axis=(0, 1))
         zn = jnp.where(fin[None], zn, z)
         Pn = jnp.where(fin[None, None], Pn, P)
         hold = jnp.where(fin[None] & jnp.isfinite(row.gyro), row.gyro, hold)
         kept = ExactLaneRows(zn, angle_variances(model, zn, Pn), nu, s, row.vh & fin[None],
                              ~fin)
+        if record:
+            return (zn, Pn, hold), (kept, (jnp.stack([k for k, _ in tape]),
+                                           jnp.stack([w for _, w in tape])))
         return (zn, Pn, hold), kept
 
     carry = (jnp.moveaxis(z0, 0, -1), jnp.moveaxis(P0, 0, -1), jnp.moveaxis(hold0, 0, -1))
-    (z, P, hold), rows = jax.lax.scan(body, carry, inputs)
+    if by_hand:
+        (z, P, hold), rows = exact_scan_rows(model, body, *carry, inputs)
+    else:
+        (z, P, hold), rows = jax.lax.scan(jax.checkpoint(body), carry, inputs)
     return (jnp.moveaxis(z, -1, 0), jnp.moveaxis(P, -1, 0), jnp.moveaxis(hold, -1, 0)), rows
 
 
 def exact_lanes_run(params: Params, series: FilterInput, state: FilterState,
-                    innovations: bool = False) -> tuple[FilterState, Estimate]:
+                    innovations: bool = False, by_hand: bool = True
+                    ) -> tuple[FilterState, Estimate]:
     """``kckf3d`` over a prepared batch (leading axis ``B``) from ``state`` (one block):
     the final state and the estimates (``B T K``), with the innovations where asked
-    (``B T 1 J``, as the sequential path gives them)."""
+    (``B T 1 J``, as the sequential path gives them). ``by_hand``: ``exact_lane_scan``'s."""
     model = _exact.exact_model(params.robot)
     inputs = exact_lane_inputs(params, model, series)
     (z, P, hold), rows = exact_lane_scan(model, state.z[:, 0], state.P[:, 0],
-                                         state.gyro_hold, inputs)
+                                         state.gyro_hold, inputs, by_hand)
     # The angles and biases of every row at once, the rows and trials as lanes (their
     # variances came from the scan: the covariances are not kept).
     zs = jnp.moveaxis(rows.z, 0, 1)  # (Nz, T, B)

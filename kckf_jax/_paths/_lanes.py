@@ -349,8 +349,9 @@ class Lanes(AbstractPath):
             robot, float32: 200 MB for 64 x 10,000 rows); the fitting step is 2x faster with it
             (benchmarks/README.md).
         exact: whether ``kckf3d`` takes it (its own step on lanes, ``_exact_lanes``; faster
-            than its sequential path from one trial on). Its gradient is JAX's automatic one,
-            slower than the sequential path's: a fitting loss's policy (``Auto.for_loss``)
+            than its sequential path from one trial on, and its gradient too, by the
+            hand-written reverse pass of ``_exact_adjoint``). That pass keeps every row's
+            covariance: a fitting loss chunked for memory (``Auto.for_loss(remat_chunk)``)
             turns it off.
     """
 
@@ -363,9 +364,8 @@ class Lanes(AbstractPath):
                 state: FilterState | None = None) -> str | None:
         if exact_lanes(method):  # kckf3d: its own step on lanes (_exact_lanes)
             return None if self.exact else (
-                "kckf3d's lanes step has no reverse pass written by hand: a gradient through "
-                "it costs more than through the sequential path (benchmarks/README.md, "
-                "\"Issue 49\")")
+                "kckf3d's lanes step is turned off (Lanes.exact=False): its reverse pass keeps "
+                "every row's covariance, and this gradient is chunked for memory")
         return kalman_only(method)
 
     def min_trials_for(self, method: str) -> int:
@@ -405,7 +405,8 @@ class Lanes(AbstractPath):
         dtype = state.z.dtype
         series = prepare(params, series, method, dtype)
         if exact_lanes(method):
-            return exact_lanes_run(params, series, state, innovations)
+            return exact_lanes_run(params, series, state, innovations,
+                                   by_hand=self.remat_chunk is None)
         st = structure(params.robot, method)
         start = LaneState(state.z, state.P, state.gyro_hold)
         inputs = lane_inputs(params, st, series.dt, series.gyro, series.hall_v)
