@@ -155,8 +155,8 @@ def test_exact_data_the_exact_filter_wins_and_torso_is_the_chain(walking):
 @pytest.mark.long
 def test_paths_say_why_not_and_the_batch_runs_on_lanes(walking):
     """``Auto`` takes kckf3d's own lanes step from one trial on; the paths that precompute
-    the linear filters' maps say why not; a fitting loss's policy takes the lanes too, but
-    the sequential path when the gradient is chunked for memory."""
+    the linear filters' maps say why not; a fitting loss's policy takes the lanes too, in
+    chunks when the gradient is chunked for memory."""
     params = Params.paper_defaults(walking[0].robot, dtype=jnp.float64)
     series = pad_series([make_series(s.t[:400], s.gyro[:400], s.hall_v[:400])
                          for s in walking] * 6)
@@ -166,12 +166,11 @@ def test_paths_say_why_not_and_the_batch_runs_on_lanes(walking):
     assert "depend on the state" in Segments().applies(params, series, "kckf3d")
     one_trial = jax.tree_util.tree_map(lambda x: x[:1], series)
     assert choose_path(params, one_trial, "kckf3d", Auto()).path.name == "lanes"
-    # A gradient takes the lanes (their reverse pass is written by hand, _exact_adjoint),
-    # but not one chunked for memory: that pass keeps every row's covariance.
-    assert choose_path(params, series, "kckf3d", Auto().for_loss()).path.name == "lanes"
-    loss_policy = choose_path(params, series, "kckf3d", Auto().for_loss(100))
-    assert loss_policy.path.name == "sequential"
-    assert "chunked for memory" in loss_policy.passed_over["lanes"]
+    # A gradient takes the lanes (their reverse pass is written by hand, _exact_adjoint);
+    # one chunked for memory runs that pass in chunks.
+    assert choose_path(params, series, "kckf3d", Auto().for_loss()).path == Lanes(min_trials=1)
+    assert choose_path(params, series, "kckf3d", Auto().for_loss(100)).path == Lanes(
+        exact_chunk=100)
     validation = choose_path(params, series, "kckf3d", Auto().for_loss(gradient=False))
     assert validation.path.name == "lanes"  # no gradient: the faster forward pass
     with pytest.raises(ValueError, match="lanes.* does not apply: kckf3d's lanes step"):

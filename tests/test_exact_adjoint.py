@@ -1,6 +1,6 @@
 """``kckf3d``'s lanes filter, its hand-written reverse pass (``_paths/_exact_adjoint.py``)
-against JAX's own (``Lanes(remat_chunk=...)`` keeps it: each row recomputed and transposed by
-JAX) and against finite differences, in float64.
+against JAX's own (``exact_lanes_run(by_hand=False)``: each row recomputed and transposed by
+JAX), in checkpointed chunks, and against finite differences, in float64.
 
 Recorded-like exact-rotation data throughout: jittered time steps, 5 % missing readings per
 channel, the voltage noise model, padded trials of uneven length; every sensor effect on, so
@@ -21,8 +21,6 @@ from kckf_jax._models._classes import init_states
 from kckf_jax._models._effects import EFFECTS, SensorEffects
 from kckf_jax._paths._exact_lanes import exact_lanes_run
 from kckf_jax._readings._prepare import prepare
-
-AUTOMATIC = Lanes(remat_chunk=40)  # JAX's own transpose of the step, each row recomputed
 
 
 def recorded_like(spec, overflow=False):
@@ -47,9 +45,17 @@ def recorded_like(spec, overflow=False):
     return params.with_effects(EFFECTS, effects), batch
 
 
-def loss(params, batch, path):
+def run(params, batch, by_hand=True, chunk=None):
+    """``Lanes``' run of ``kckf3d``: its reverse pass by hand (optionally in chunks) or, with
+    ``by_hand=False``, JAX's own (each row recomputed and transposed)."""
+    prepared = prepare(params, batch, "kckf3d", jnp.float64)
+    state = init_states(params, "kckf3d", batch.dt.shape[0])
+    return exact_lanes_run(params, prepared, state, True, by_hand, chunk)
+
+
+def loss(params, batch, by_hand=True, chunk=None):
     """Every output the estimate has: angles, their standard deviations and the biases."""
-    est = filter_batch(params, batch, "kckf3d", path=path)
+    est = run(params, batch, by_hand, chunk)[1]
     return (jnp.nansum(est.angles**2) + 0.3 * jnp.nansum(est.angle_std)
             + jnp.nansum(jnp.sin(est.bias)))
 
@@ -68,50 +74,63 @@ def assert_close(got, ref, rtol):
 
 @pytest.mark.parametrize("spec", ["x,y,x,y", pytest.param("xz,y,xyz", marks=pytest.mark.long)])
 def test_parameter_gradient_equals_the_automatic_one(spec):
-    """One-axis joints (constant entries), and joints of two and three axes."""
+    """One-axis joints (constant entries), and joints of two and three axes; and the
+    filter's gradient (``Lanes``, as a fitting loss takes it) is this one."""
     params, batch = recorded_like(spec)
     grad = eqx.filter_jit(eqx.filter_value_and_grad(loss))
-    (v0, g0), (v1, g1) = grad(params, batch, Lanes()), grad(params, batch, AUTOMATIC)
+    (v0, g0), (v1, g1) = grad(params, batch), grad(params, batch, False)
     assert float(v0) == pytest.approx(float(v1), rel=1e-12)
     assert_close(g0, g1, 1e-9)
     assert max(np.max(np.abs(np.asarray(x))) for x in leaves(g0.effects)) > 0
 
+    def through_lanes(p):
+        est = filter_batch(p, batch, "kckf3d", path=Lanes(min_trials=1))
+        return (jnp.nansum(est.angles**2) + 0.3 * jnp.nansum(est.angle_std)
+                + jnp.nansum(jnp.sin(est.bias)))
 
+    assert_close(eqx.filter_jit(eqx.filter_grad(through_lanes))(params), g0, 1e-12)
+
+
+@pytest.mark.long  # the default run checks the parameters' gradient (x,y,x,y) above
 def test_data_gradient_and_the_innovations_equal_the_automatic_ones():
     """The cotangents of the time steps, gyro readings and Hall voltages, through the
-    estimate and through every row's innovations and their variances (the likelihood's)."""
+    estimate, every row's innovations and their variances (the likelihood's) and the final
+    state; and the same in checkpointed chunks (``Lanes.exact_chunk``; 25 rows, the last
+    chunk padded)."""
     params, batch = recorded_like("xy,z")
 
-    def total(series, by_hand):
-        prepared = prepare(params, series, "kckf3d", jnp.float64)
-        B = series.dt.shape[0]
-        state = init_states(params, "kckf3d", B)
-        final, est = exact_lanes_run(params, prepared, state, True, by_hand)
+    def total(series, by_hand, chunk=None):
+        final, est = run(params, series, by_hand, chunk)
         nu, s, valid = est.innovations
         return (jnp.nansum(est.angles**2) + 0.3 * jnp.nansum(est.angle_std)
                 + jnp.sum(jnp.where(valid, nu**2 / s + jnp.log(s), 0.0))
                 + jnp.sum(final.z**2) + jnp.sum(final.P))
 
-    g0, g1 = (jax.jit(jax.grad(lambda x, b=b: total(x, b)))(batch) for b in (True, False))
-    for a, b in zip(leaves(g0), leaves(g1), strict=True):
-        a, b = np.asarray(a), np.asarray(b)
+    grads = [jax.jit(jax.value_and_grad(lambda x, a=a: total(x, *a)))(batch)
+             for a in ((True,), (False,), (True, 25))]
+    (v0, g0), (v1, g1), (v2, g2) = grads
+    assert float(v0) == pytest.approx(float(v1), rel=1e-12)
+    assert float(v2) == pytest.approx(float(v0), rel=1e-12)
+    for a, b, c in zip(leaves(g0), leaves(g1), leaves(g2), strict=True):
+        a, b, c = np.asarray(a), np.asarray(b), np.asarray(c)
         scale = np.max(np.abs(b))
         assert scale > 0
         np.testing.assert_allclose(a, b, rtol=0, atol=1e-9 * scale)
+        np.testing.assert_allclose(c, a, rtol=0, atol=1e-12 * scale)
 
 
 @pytest.mark.long
 def test_a_skipped_row_passes_its_cotangents_through():
-    """JAX's own gradient through an overflowing row is NaN in every leaf; the hand-written
-    one is NaN only in ``log_q``, whose row's process noise itself overflows (as for the
-    linear KCKF's), and equals central finite differences in the others."""
+    """JAX's own gradient through an overflowing row is NaN; the hand-written one is NaN
+    only in ``log_q``, whose row's process noise itself overflows (as for the linear KCKF's),
+    and equals central finite differences in the others."""
     params, batch = recorded_like("x,y,x,y", overflow=True)
     plain = params.with_effects(())
-    g = eqx.filter_jit(eqx.filter_grad(loss))(plain, batch, Lanes())
+    g = eqx.filter_jit(eqx.filter_grad(loss))(plain, batch)
     assert not np.all(np.isfinite(np.asarray(g.log_q)))
-    auto = eqx.filter_jit(eqx.filter_grad(loss))(plain, batch, AUTOMATIC)
+    auto = eqx.filter_jit(eqx.filter_grad(loss))(plain, batch, False)
     assert not np.isfinite(np.asarray(auto.log_hall_d)).all()
-    f = jax.jit(lambda p: loss(p, batch, Lanes()))
+    f = jax.jit(lambda p: loss(p, batch))
     for name in ("log_hall_d", "log_p0_bias", "log_sigma_hall_v"):
         x = np.asarray(getattr(plain, name))
         got = np.asarray(getattr(g, name))

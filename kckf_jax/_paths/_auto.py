@@ -82,12 +82,12 @@ class Auto(AbstractPath):
         the paths' choices"); ``kckf3d``'s lanes step has its own (``_exact_adjoint``). It
         keeps every row's state and gains (about 1.1 kB per trial-step with the rows' inputs
         for the linear KCKF), so a gradient the sequential path would chunk for memory keeps
-        ``lanes`` as it is; but ``kckf3d``'s keeps its whole covariance per row (2.9 kB a
-        trial-row for ``xyz,xyz,xyz``), so such a gradient of ``kckf3d`` takes the chunked
-        sequential path (``Lanes.exact``)."""
+        ``lanes`` as it is; ``kckf3d``'s keeps its whole covariance per row (2.9 kB a
+        trial-row for ``xyz,xyz,xyz``), so such a gradient runs its pass in checkpointed
+        chunks of ``remat_chunk`` rows (``Lanes.exact_chunk``)."""
         lanes = Lanes(min_trials=1) if gradient and remat_chunk is None else self.lanes
         if gradient and remat_chunk is not None:
-            lanes = dataclasses.replace(lanes, exact=False)
+            lanes = dataclasses.replace(lanes, exact_chunk=remat_chunk)
         return Auto(steady=self.steady, lanes=lanes, segments=None,
                     sequential=Sequential(remat_chunk), before=self.before)
 

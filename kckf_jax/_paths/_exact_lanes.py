@@ -23,6 +23,7 @@ from jaxtyping import Array, Bool, Float
 
 from .._models import _exact
 from .._models._blocks import q_blocks
+from .._models._chunked_scan import chunked_scan
 from .._models._classes import ExactKCKF, model_of
 from .._models._exact_entries import angle_variances, entry_estimate, entry_step
 from .._models._kalman import fused_pairs
@@ -85,11 +86,14 @@ def exact_lane_inputs(params: Params, model: _exact.ExactModel, series: FilterIn
 
 def exact_lane_scan(model: _exact.ExactModel, z0: Float[Array, "B Nz"],
                     P0: Float[Array, "B Nz Nz"], hold0: Float[Array, "B G"],
-                    inputs: ExactLaneInputs, by_hand: bool = True) -> tuple[tuple, ExactLaneRows]:
+                    inputs: ExactLaneInputs, by_hand: bool = True, chunk: int | None = None
+                    ) -> tuple[tuple, ExactLaneRows]:
     """The filter over every row, trials as lanes: the final ``(z, P, hold)`` (lanes first)
     and the rows' ``ExactLaneRows``. Its reverse pass is the hand-written one
-    (``_exact_adjoint``); ``by_hand=False``: JAX's own, each row recomputed (the tests'
-    reference)."""
+    (``_exact_adjoint``), which keeps every row's covariance; with ``chunk``, in checkpointed
+    chunks of that many rows (each chunk's forward pass run again in the reverse one, and
+    only its rows' covariances kept at once). ``by_hand=False``: JAX's own, each row
+    recomputed (the tests' reference)."""
 
     def body(carry, row: ExactLaneInputs, record: bool = False):
         z, P, hold = carry
@@ -108,7 +112,13 @@ def exact_lane_scan(model: _exact.ExactModel, z0: Float[Array, "B Nz"],
         return (zn, Pn, hold), kept
 
     carry = (jnp.moveaxis(z0, 0, -1), jnp.moveaxis(P0, 0, -1), jnp.moveaxis(hold0, 0, -1))
-    if by_hand:
+    if by_hand and chunk:
+        # No-op rows pad the last chunk: no time step, no process noise, no reading.
+        fill = jax.tree_util.tree_leaves(ExactLaneInputs(0.0, jnp.nan, 0.0, 1.0, False, 0.0))
+        (z, P, hold), rows = chunked_scan(
+            lambda c, r: exact_scan_rows(model, body, *c, r), carry, inputs, chunk, fill,
+            per_row=False)
+    elif by_hand:
         (z, P, hold), rows = exact_scan_rows(model, body, *carry, inputs)
     else:
         (z, P, hold), rows = jax.lax.scan(jax.checkpoint(body), carry, inputs)
@@ -116,15 +126,16 @@ def exact_lane_scan(model: _exact.ExactModel, z0: Float[Array, "B Nz"],
 
 
 def exact_lanes_run(params: Params, series: FilterInput, state: FilterState,
-                    innovations: bool = False, by_hand: bool = True
-                    ) -> tuple[FilterState, Estimate]:
+                    innovations: bool = False, by_hand: bool = True,
+                    chunk: int | None = None) -> tuple[FilterState, Estimate]:
     """``kckf3d`` over a prepared batch (leading axis ``B``) from ``state`` (one block):
     the final state and the estimates (``B T K``), with the innovations where asked
-    (``B T 1 J``, as the sequential path gives them). ``by_hand``: ``exact_lane_scan``'s."""
+    (``B T 1 J``, as the sequential path gives them). ``by_hand``, ``chunk``:
+    ``exact_lane_scan``'s."""
     model = _exact.exact_model(params.robot)
     inputs = exact_lane_inputs(params, model, series)
     (z, P, hold), rows = exact_lane_scan(model, state.z[:, 0], state.P[:, 0],
-                                         state.gyro_hold, inputs, by_hand)
+                                         state.gyro_hold, inputs, by_hand, chunk)
     # The angles and biases of every row at once, the rows and trials as lanes (their
     # variances came from the scan: the covariances are not kept).
     zs = jnp.moveaxis(rows.z, 0, 1)  # (Nz, T, B)

@@ -350,22 +350,26 @@ class Lanes(AbstractPath):
             (benchmarks/README.md).
         exact: whether ``kckf3d`` takes it (its own step on lanes, ``_exact_lanes``; faster
             than its sequential path from one trial on, and its gradient too, by the
-            hand-written reverse pass of ``_exact_adjoint``). That pass keeps every row's
-            covariance: a fitting loss chunked for memory (``Auto.for_loss(remat_chunk)``)
-            turns it off.
+            hand-written reverse pass of ``_exact_adjoint``).
+        exact_chunk: ``kckf3d``'s reverse pass in checkpointed chunks of this many rows. That
+            pass keeps every row's covariance and gains (2.9 kB a trial-row for
+            ``xyz,xyz,xyz``, float32); in chunks, each chunk's forward pass runs again in the
+            reverse one and only its rows' are kept at once. ``Auto.for_loss(remat_chunk)``
+            (a gradient chunked for memory) sets it. ``remat_chunk`` is the linear
+            filters'.
     """
 
     name: ClassVar[str] = "lanes"
     min_trials: int = eqx.field(static=True, default=12)
     remat_chunk: int | None = eqx.field(static=True, default=None)
     exact: bool = eqx.field(static=True, default=True)
+    exact_chunk: int | None = eqx.field(static=True, default=None)
 
     def applies(self, params: Params, series: SensorSeries, method: str,
                 state: FilterState | None = None) -> str | None:
         if exact_lanes(method):  # kckf3d: its own step on lanes (_exact_lanes)
             return None if self.exact else (
-                "kckf3d's lanes step is turned off (Lanes.exact=False): its reverse pass keeps "
-                "every row's covariance, and this gradient is chunked for memory")
+                "kckf3d's lanes step is turned off here (Lanes.exact=False)")
         return kalman_only(method)
 
     def min_trials_for(self, method: str) -> int:
@@ -406,7 +410,7 @@ class Lanes(AbstractPath):
         series = prepare(params, series, method, dtype)
         if exact_lanes(method):
             return exact_lanes_run(params, series, state, innovations,
-                                   by_hand=self.remat_chunk is None)
+                                   chunk=self.exact_chunk)
         st = structure(params.robot, method)
         start = LaneState(state.z, state.P, state.gyro_hold)
         inputs = lane_inputs(params, st, series.dt, series.gyro, series.hall_v)
