@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import os
 
+import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -116,3 +118,18 @@ def error_of(folder, **kwargs) -> str:
     message = str(info.value)
     assert "\n" not in message, message
     return message
+
+
+def leaves(tree) -> list:
+    """The floating-point array leaves of a pytree (a gradient of ``Params``), in order."""
+    return jax.tree_util.tree_leaves(eqx.filter(tree, eqx.is_inexact_array))
+
+
+def assert_close(got, ref, rtol: float) -> None:
+    """Every leaf of ``got`` finite and within ``rtol`` of the largest entry of ``ref``'s
+    leaf (gradients: relative to the leaf's scale, not entry by entry)."""
+    for a, b in zip(leaves(got), leaves(ref), strict=True):
+        a, b = np.asarray(a), np.asarray(b)
+        scale = np.max(np.abs(b)) if b.size else 0.0
+        assert np.all(np.isfinite(a))
+        np.testing.assert_allclose(a, b, rtol=0, atol=rtol * scale + 1e-300)

@@ -15,6 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import assert_close, leaves
 
 from kckf_jax import Lanes, Params, Robot, SensorSeries, filter_batch, pad_series, simulate
 from kckf_jax._models._classes import init_states
@@ -58,18 +59,6 @@ def loss(params, batch, by_hand=True, chunk=None):
     est = run(params, batch, by_hand, chunk)[1]
     return (jnp.nansum(est.angles**2) + 0.3 * jnp.nansum(est.angle_std)
             + jnp.nansum(jnp.sin(est.bias)))
-
-
-def leaves(tree):
-    return jax.tree_util.tree_leaves(eqx.filter(tree, eqx.is_inexact_array))
-
-
-def assert_close(got, ref, rtol):
-    for a, b in zip(leaves(got), leaves(ref), strict=True):
-        a, b = np.asarray(a), np.asarray(b)
-        scale = np.max(np.abs(b)) if b.size else 0.0
-        assert np.all(np.isfinite(a))
-        np.testing.assert_allclose(a, b, rtol=0, atol=rtol * scale + 1e-300)
 
 
 @pytest.mark.parametrize("spec", ["x,y,x,y", pytest.param("xz,y,xyz", marks=pytest.mark.long)])
