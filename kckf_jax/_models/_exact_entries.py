@@ -17,10 +17,12 @@ entry at a time, each entry an array over the lanes (the trials of a batch,
   (``torso_entries``: ``chain_rotation_axes`` and ``euler_xyz_jacobian``' closed forms).
 
 The lanes path runs it over a batch (``_paths/_exact_lanes``), the stream and the exported
-step on one lane (``ExactKCKF.packet_step``). The model's ``step`` (the sequential path, the
-smoother, the fit) stays ``_exact``'s matrix form, whose gradient JAX takes about five times
-faster than this form's (benchmarks/README.md, "Issue 49"). The two forms are held to each
-other and to the NumPy reference by tests/test_exact_lanes.py and tests/test_exact.py.
+step on one lane (``ExactKCKF.packet_step``); a fitting loss differentiates the lanes path
+through its hand-written reverse pass (``_paths/_exact_adjoint``), which transposes this form
+piece by piece. The model's ``step`` (the sequential path, the smoother) stays ``_exact``'s
+matrix form, whose gradient JAX takes about five times faster than this form's
+(benchmarks/README.md, "Issue 49"). The two forms are held to each other and to the NumPy
+reference by tests/test_exact_lanes.py and tests/test_exact.py.
 """
 
 from __future__ import annotations
