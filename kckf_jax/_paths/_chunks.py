@@ -25,6 +25,7 @@ from jaxtyping import Array, Float
 
 from .._models._hall import hall_angle
 from ._affine import apply_blocks
+from ._reverse import if_perturbed, is_perturbed
 
 
 @dataclass(frozen=True)
@@ -254,7 +255,7 @@ def _chunk_rows_fwd(perturbed: ChunkInputs, inputs: ChunkInputs, plan: ChunkPlan
 @_chunk_rows.def_bwd
 def _chunk_rows_bwd(ss, ct, perturbed: ChunkInputs, inputs: ChunkInputs, plan: ChunkPlan):
     GS, E, Phi, _, coeffs, gyro, hall_v, _ = inputs
-    want_coeffs, want_gyro, want_hall = (any(jax.tree_util.tree_leaves(p)) for p in (
+    want_coeffs, want_gyro, want_hall = (is_perturbed(p) for p in (
         perturbed.coeffs, perturbed.gyro, perturbed.hall_v))
     want_x = want_gyro or want_hall
     douts, ds_end = ct  # None: not differentiated
@@ -323,10 +324,7 @@ def _chunk_rows_bwd(ss, ct, perturbed: ChunkInputs, inputs: ChunkInputs, plan: C
     douts = tuple(None if o is None else jax.lax.dynamic_update_slice_in_dim(
         o, jnp.zeros((n_trials, rows, K), o.dtype), start, axis=1) for o in douts)
 
-    def wanted(g, p):
-        return g if any(jax.tree_util.tree_leaves(p)) else None
-
-    return ChunkInputs(wanted(dGS, perturbed.GS), wanted(dE, perturbed.E),
-                       wanted(dPhi, perturbed.Phi), wanted(ds0, perturbed.s0),
+    return ChunkInputs(if_perturbed(dGS, perturbed.GS), if_perturbed(dE, perturbed.E),
+                       if_perturbed(dPhi, perturbed.Phi), if_perturbed(ds0, perturbed.s0),
                        dcoeffs if want_coeffs else None, dgyro, dhall_v,
-                       tuple(wanted(d, p) for d, p in zip(douts, perturbed.outs)))
+                       tuple(if_perturbed(d, p) for d, p in zip(douts, perturbed.outs)))

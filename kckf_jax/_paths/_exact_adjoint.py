@@ -33,6 +33,7 @@ import jax.numpy as jnp
 
 from .._models import _exact
 from .._models._exact_entries import angle_variances, prediction_rows, times
+from ._reverse import dense, entering, if_perturbed, is_perturbed
 
 
 class _Args(NamedTuple):
@@ -79,17 +80,10 @@ def exact_scan_rows(model: _exact.ExactModel, body, z0, P0, hold0, rows):
     @run.def_bwd
     def bwd(tape: _Tape, cts, perturbed: _Args, args: _Args):
         z0, P0, hold0, rows = args
-        want_ts = any(jax.tree_util.tree_leaves(perturbed.rows.ts))
+        want_ts = is_perturbed(perturbed.rows.ts)
         (zT_bar, PT_bar, holdT_bar), kept_bar = cts
 
-        def dense(ct, like):
-            return jnp.zeros_like(like) if ct is None else ct
-
         T = tape.skipped.shape[0]
-
-        def before(t, xs, first):  # what entered row t
-            prev = jax.lax.dynamic_index_in_dim(xs, jnp.maximum(t - 1, 0), keepdims=False)
-            return jnp.where(t == 0, first, prev)
 
         def back(carry, xs):
             zb, Pb, hb = carry
@@ -101,8 +95,8 @@ def exact_scan_rows(model: _exact.ExactModel, body, z0, P0, hold0, rows):
                 dz, dP = vjp_var(var_bar)
                 zb, Pb = zb + dz, Pb + dP
             fin = ~sk
-            z_in, P_in, hold_in = (before(t, tape.z, z0), before(t, tape.P, P0),
-                                   before(t, tape.hold, hold0))
+            z_in, P_in, hold_in = (entering(t, tape.z, z0), entering(t, tape.P, P0),
+                                   entering(t, tape.hold, hold0))
             zero = jnp.zeros((), zb.dtype)
             step = step_adjoint(
                 model, z_in, P_in, hold_in, row.ts, jnp.where(fin, k, zero),
@@ -125,15 +119,11 @@ def exact_scan_rows(model: _exact.ExactModel, body, z0, P0, hold0, rows):
         (z0_bar, P0_bar, hold0_bar), (h_bar, rh_bar, q_bar, ts_bar, g_bar) = jax.lax.scan(
             back, carry, per_row, reverse=True)
         pr = perturbed.rows
-
-        def wanted(g, p):
-            return g if any(jax.tree_util.tree_leaves(p)) else None
-
-        rows_bar = type(rows)(wanted(ts_bar, pr.ts), wanted(g_bar, pr.gyro),
-                              wanted(h_bar, pr.h), wanted(rh_bar, pr.rh), None,
-                              wanted(q_bar, pr.q))
-        return _Args(wanted(z0_bar, perturbed.z0), wanted(P0_bar, perturbed.P0),
-                     wanted(hold0_bar, perturbed.hold0), rows_bar)
+        rows_bar = type(rows)(if_perturbed(ts_bar, pr.ts), if_perturbed(g_bar, pr.gyro),
+                              if_perturbed(h_bar, pr.h), if_perturbed(rh_bar, pr.rh), None,
+                              if_perturbed(q_bar, pr.q))
+        return _Args(if_perturbed(z0_bar, perturbed.z0), if_perturbed(P0_bar, perturbed.P0),
+                     if_perturbed(hold0_bar, perturbed.hold0), rows_bar)
 
     return run(_Args(z0, P0, hold0, rows))
 
@@ -177,8 +167,7 @@ def step_adjoint(model: _exact.ExactModel, z, P, hold, ts, k, w, zb, Pb, nu_out_
     # earlier adds' terms, vectors only. So the covariance's cotangent is read once and
     # written once, not twice per update.
     Pb = 0.5 * (Pb + tr(Pb))
-    K = jnp.stack(list(k), axis=1)  # (Nz, J, B)
-    PK = jnp.sum(Pb[:, :, None] * K[None], axis=1)  # (Nz, J, B): P_bar_J k_i
+    PK = jnp.sum(Pb[:, None] * k[None], axis=2)  # (Nz, J, B): P_bar_J k_i
     h_bar, rh_bar, c_bars = [None] * J, [None] * J, [None] * J
     for i in reversed(range(J)):
         ki, wi = k[i], w[i]

@@ -32,6 +32,7 @@ import numpy as np
 
 from .._models._blocks import Structure
 from ._lane_step import _apply, _Consts, lane_step_adjoint
+from ._reverse import dense, entering, is_perturbed
 
 
 def scan_rows(st: Structure, consts: _Consts, Rm: np.ndarray, body, x0, hold0, rows):
@@ -72,9 +73,6 @@ def scan_rows(st: Structure, consts: _Consts, Rm: np.ndarray, body, x0, hold0, r
         nb = st.angle_index.shape[0]
         T = tape_rows.skipped.shape[0]
 
-        def dense(ct, like):  # None: the output is not differentiated
-            return jnp.zeros_like(like) if ct is None else ct
-
         xT_bar = dense(xT_bar, x0)
         carry = (xT_bar[:nz], xT_bar[nz:])
         if want_hold:
@@ -83,10 +81,6 @@ def scan_rows(st: Structure, consts: _Consts, Rm: np.ndarray, body, x0, hold0, r
         per_row = (kept_bar.nu, kept_bar.s) if innovations else (kept_bar.z, kept_bar.P)
         if moments:
             per_row += (kept_bar.y, kept_bar.S)
-
-        def before(t, x_rows, first):  # the state entering row t
-            prev = jax.lax.dynamic_index_in_dim(x_rows, jnp.maximum(t - 1, 0), keepdims=False)
-            return jnp.where(t == 0, first, prev)
 
         def back(carry, row):
             z_bar, P_bar = carry[:2]
@@ -110,8 +104,8 @@ def scan_rows(st: Structure, consts: _Consts, Rm: np.ndarray, body, x0, hold0, r
             tsb = jnp.broadcast_to(ts, (nb,) + ts.shape)
             inputs = {}
             if flags.ts:  # the step's inputs, for the derivative in its time step
-                x, hold = (before(t, tape_rows.state[0], x0),
-                           before(t, tape_rows.state[1], hold0))
+                x, hold = (entering(t, tape_rows.state[0], x0),
+                           entering(t, tape_rows.state[1], hold0))
                 inputs = dict(z=x[:nz], P=x[nz:],
                               rates=_apply(Rm, hold).reshape((st.m + 1, nb) + hold.shape[1:]))
             z_new, P_new, noise_bar, hb_bar, rb_bar, ts_bar, rates_bar = lane_step_adjoint(
@@ -167,11 +161,8 @@ class _ScanArgs(NamedTuple):
 
 
 def _wanted(perturbed: _ScanArgs) -> _Wanted:
-    def any_of(tree) -> bool:
-        return any(jax.tree_util.tree_leaves(tree))
-
-    return _Wanted(any_of(perturbed.x0), any_of(perturbed.hold0), any_of(perturbed.rows.ts),
-                   any_of(perturbed.rows.gyro))
+    return _Wanted(is_perturbed(perturbed.x0), is_perturbed(perturbed.hold0),
+                   is_perturbed(perturbed.rows.ts), is_perturbed(perturbed.rows.gyro))
 
 
 class _Wanted(NamedTuple):
