@@ -30,7 +30,8 @@ def reference_params(params: Params) -> dict:
                    "MOTION_FLOOR_RAD", "ROUGH_TAU_S", "ROUGH_HIGH", "ROUGH_LOW", "STUCK_S",
                    "STUCK_MOVE_RAD", "READMIT_S", "REF_TAU_S", "PAIR_FAST_S", "PAIR_SLOW_S",
                    "BIAS_STEP_RAD_S", "CM_FAST_S", "CM_SLOW_S", "BIAS_EVIDENCE_RAD",
-                   "PAIR_SPREAD_S", "SPREAD_FACTOR")} if params.faults.isolates else None)
+                   "PAIR_SPREAD_S", "SPREAD_FACTOR", "MONITOR_MIN_SIGMA_V")}
+               if params.faults.isolates else None)
     return out
 
 

@@ -289,6 +289,7 @@ def usable_readings(joints, t, gyro, hall_v, params):
       from the gyros integrated and pulled towards that mean by min(1, dt / REF_TAU_S);
     * every Hall sensor's residual against the reference changes from one reading to its
       next by (Hall angle change) - dt * (joint rate); squared, divided by 2 (slope sigma_v)^2
+      (sigma_v: the sensor's voltage noise, or MONITOR_MIN_SIGMA_V where that is larger)
       + (MOTION_FRACTION |dt rate| + MOTION_FLOOR_RAD)^2, averaged with weight
       min(1, dt / ROUGH_TAU_S), it is the roughness; above ROUGH_HIGH the sensor is isolated,
       if its joint's pair roughness is above ROUGH_HIGH too or its partner (the other sensor
@@ -403,7 +404,8 @@ def usable_readings(joints, t, gyro, hall_v, params):
             angle[m] = hall_angle(V, params, m)
             e = angle[m] - ref[j]
             if np.isfinite(last_e[m]) and not fresh[j]:
-                sv = hall_slope(V, params, m) * float(np.asarray(params["sigma_hall_v"])[m])
+                sv = hall_slope(V, params, m) * max(float(np.asarray(params["sigma_hall_v"])[m]),
+                                                    H["MONITOR_MIN_SIGMA_V"])
                 move = abs(dt[k] * rate[j])
                 noise[m] = 2 * sv**2
                 div[m] = noise[m] + (H["MOTION_FRACTION"] * move + H["MOTION_FLOOR_RAD"])**2

@@ -138,3 +138,30 @@ def test_a_bias_step_does_not_pass_for_the_model():
     bad = kk.inject_faults(s, [kk.Fault.parse("bias_step:gyro3_x@20=0.2")])
     assert kk.model_mismatch(bad, "kckf") == []
     assert kk.model_mismatch(s, "kckf") == []
+
+
+@pytest.mark.long
+def test_a_fitted_small_voltage_noise_calls_no_healthy_sensor_noisy():
+    """A fit shrinks ``sigma_hall_v`` where the gyros' model misses (boards tilted 10 deg, not
+    modelled: 0.005 V on the z joint against a true 0.03 V, issue 50). The monitor judges
+    against at least the default noise (``_health.MONITOR_MIN_SIGMA_V``): judged against
+    0.005 V both healthy sensors of a joint were isolated for the whole session (0.70 -> 37
+    deg). Half a volt of noise on one sensor is still found with the same parameters."""
+    cfg = dataclasses.replace(kk.SimConfig(), gyro_mount_deg=10.0)
+    robot = Robot.from_spec("x,y,z")
+    p = Params.from_physical(robot, sigma_hall_v=0.005)
+    names = robot.gyro_names + robot.hall_names
+    clean = kk.simulate(robot, "walking", seed=3, duration_s=20.0, device_seed=7, config=cfg,
+                        kinematics="exact", drop_prob=0.01)
+    iso, off = (kk.filter_sessions([clean], "kckf3d", p, faults=f)[0]
+                for f in ("isolate", "off"))
+    assert kk.fault_stretches(clean.t, iso.faults, names) == []
+    np.testing.assert_array_equal(iso.angles, off.angles)
+    fault = kk.Fault.parse("noise:hall3_z_l@8-12=0.5")
+    noisy = kk.simulate(robot, "walking", seed=3, duration_s=20.0, device_seed=7, config=cfg,
+                        kinematics="exact", drop_prob=0.01, faults=[fault])
+    found = kk.fault_stretches(noisy.t, kk.filter_sessions([noisy], "kckf3d", p)[0].faults,
+                               names)
+    assert {f["column"] for f in found} == {"hall3_z_l"}, found  # railed too, by the screen
+    (stretch,) = [f for f in found if f["kind"] == "noisy"]
+    assert 8.0 <= stretch["from_s"] <= 8.5 and stretch["to_s"] <= 13.0, found  # + READMIT_S
