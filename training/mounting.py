@@ -3,17 +3,25 @@ with and without the learned mounting (``gyro_mounting``).
 
     python training/mounting.py [--joints x,y,z] [--kind walking] [--devices 7,8,9]
                                 [--steps 300] [--tilt 10] [--soft 0] [--fits ...] [--quick]
+    python training/mounting.py --table
 
 Per device (``--devices``: each its own tilts; two training sessions and one held-out of 40
 s, exact kinematics, 1 % dropped readings, ``kckf3d``) three fits on the training sessions:
 the same sessions with rigid, aligned boards (``rigid``); the tilted (and, with ``--soft HZ``,
 softly mounted) boards without the mounting (``not modelled``); and learning it (``learned``).
-Reports the held-out RMSE (deg, the fit's kept step), the kept step against the steps run, and
-each board's learned rotation against the simulator's (deg: the norm of the difference of the
-rotation vectors). Writes ``training/results/mounting_<joints>_<kind>.json``. ``--fits
+Reports the held-out RMSE (deg, the fit's kept step), the held-out mean RMSE of the kept
+parameters filtered and smoothed (``kk.filter_sessions``, ``kk.rmse_table``), the kept step
+against the steps run, each board's learned rotation against the simulator's (deg: the norm of
+the difference of the rotation vectors; zero is the truth with ``--tilt 0``), and each hinge's
+axis as each of its two boards sees it, learned against true (deg: what the filter reads of a
+board is its rate along the hinge axes beside it, so a board's turn about its one hinge is
+neither seen nor needed). Writes ``training/results/mounting_<joints>_<kind>[_tilt<deg>]
+[_soft<hz>].json`` (no ``_tilt`` part at the default 10 deg). ``--fits
 learned`` runs only the named fits and keeps the others' figures from that file (the rigid and
 not-modelled fits learn no mounting, so a change to how it is learned leaves them as they
-were); ``--quick``: a smoke run (one device, 10 s sessions, 5 steps) that writes nothing.
+were); ``--quick``: a smoke run (one device, 10 s sessions, 5 steps) that writes nothing;
+``--table``: docs/fitting.md's two tables (each effect alone and together on ``x,y,z``
+walking; tilt and soft mount on every robot and motion run) from the result files.
 """
 
 from __future__ import annotations
@@ -41,6 +49,41 @@ def sessions(joints: str, kind: str, device: int, duration: float, sim: dict) ->
     return [one(100 * device + 1), one(100 * device + 2)], [one(100 * device + 3)]
 
 
+def held_out(val, params) -> dict:
+    """The held-out mean RMSE (deg) of ``params``, filtered and smoothed."""
+    out = {}
+    for name, smooth in (("filtered", False), ("smoothed", True)):
+        est = kk.filter_sessions(val, "kckf3d", params, smooth=smooth)
+        out[name] = round(kk.rmse_table(val, [e.angles for e in est])["mean_rmse_deg"], 3)
+    return out
+
+
+def rotations(v: np.ndarray) -> np.ndarray:
+    """Rodrigues: the rotations (``L 3 3``) of rotation vectors ``v`` (``L 3``, deg)."""
+    out = []
+    for x in np.asarray(v, np.float64) * np.pi / 180:
+        a = np.linalg.norm(x)
+        K = np.cross(np.eye(3), x / a if a > 0 else x)
+        out.append(np.eye(3) + np.sin(a) * K + (1 - np.cos(a)) * K @ K)
+    return np.stack(out)
+
+
+def axis_errors(joints: str, got: np.ndarray, want: np.ndarray) -> list:
+    """Per one-axis joint, the angle (deg) between its axis as each of its two boards sees it
+    under the learned (``got``) and the true (``want``) mountings (``L 3``, deg): ``R' e``.
+    Joint ``i + 1`` joins boards ``i`` and ``i + 1``."""
+    Rg, Rw = rotations(got), rotations(want)
+    out = []
+    for i, axes in enumerate(kk.Robot.from_spec(joints).joints):
+        if len(axes) != 1:
+            continue
+        e = np.eye(3)["xyz".index(axes[0])]
+        for b in (i, i + 1):
+            c = float(np.clip((Rg[b].T @ e) @ (Rw[b].T @ e), -1.0, 1.0))
+            out.append(round(float(np.degrees(np.arccos(c))), 2))
+    return out
+
+
 def fitted(train, val, steps: int, learn: tuple) -> dict:
     # One rate for every fit: the mounting's leaf (deg) takes steps 10 times it
     # (``_effects.STEP_SCALES``), the rest the default 0.03.
@@ -48,8 +91,70 @@ def fitted(train, val, steps: int, learn: tuple) -> dict:
                        patience=steps)
     t0 = time.time()
     res = kk.fit(train, val, cfg, dtype=jnp.float32)
-    return {"val_rmse_deg": round(float(res.best_loss_deg), 3), "best_step": res.best_step,
-            "steps": res.steps_done, "seconds": round(time.time() - t0, 1), "result": res}
+    seconds = round(time.time() - t0, 1)
+    return {"val_rmse_deg": round(float(res.best_loss_deg), 3), **held_out(val, res.params),
+            "best_step": res.best_step, "steps": res.steps_done, "seconds": seconds,
+            "result": res}
+
+
+def _mean(rows, fit, key):
+    return sum(r[fit][key] for r in rows) / len(rows)
+
+
+def _span(xs, fmt="{:.2f}"):
+    lo, hi = min(xs), max(xs)
+    return fmt.format(lo) if lo == hi else f"{fmt.format(lo)}-{fmt.format(hi)}"
+
+
+def _axes(rows):
+    """The learned hinge axes (or, without hinges, board rotations) within 1 deg of the truth,
+    of all, and the largest error."""
+    key = "hinge_axis_error_deg" if rows[0].get("hinge_axis_error_deg") else "mounting_error_deg"
+    errs = [e for r in rows for e in r[key]]
+    what = "hinge axes" if key == "hinge_axis_error_deg" else "boards"
+    return f"{sum(e <= 1.0 for e in errs)} of {len(errs)} {what}; worst {max(errs):.1f} deg"
+
+
+def tables() -> str:
+    """The two tables of docs/fitting.md ("Gyros as worn") from the result files."""
+    def load(name):
+        with open(os.path.join(HERE, "results", name + ".json")) as f:
+            return json.load(f)["rows"]
+
+    out = ["| effect simulated (x,y,z walking, devices 7-9) | not modelled: filtered / smoothed "
+           "| learned: filtered / smoothed | learned / rigid, filtered | kept steps (of 300) "
+           "| learned mounting against the truth |", "| --- | --- | --- | --- | --- | --- |"]
+    base = load("mounting_x-y-z_walking")
+    out.append(f"| none (rigid, aligned boards) | {_mean(base, 'rigid', 'filtered'):.3f} / "
+               f"{_mean(base, 'rigid', 'smoothed'):.3f} | - | - | "
+               f"{_span([r['rigid']['best_step'] for r in base], '{}')} | - |")
+    for label, name in (("tilt 5-10 deg", "mounting_x-y-z_walking"),
+                        ("soft mount (8 Hz), no tilt", "mounting_x-y-z_walking_tilt0_soft8"),
+                        ("tilt and soft mount", "mounting_x-y-z_walking_soft8")):
+        rows = load(name)
+        ratio = [r["learned"]["filtered"] / r["rigid"]["filtered"] for r in rows]
+        out.append(
+            f"| {label} | {_mean(rows, 'not_modelled', 'filtered'):.3f} / "
+            f"{_mean(rows, 'not_modelled', 'smoothed'):.3f} | "
+            f"{_mean(rows, 'learned', 'filtered'):.3f} / {_mean(rows, 'learned', 'smoothed'):.3f}"
+            f" | {_span(ratio)} | {_span([r['learned']['best_step'] for r in rows], '{}')} | "
+            f"{_axes(rows)} |")
+    out += ["", "| robot, motion (tilt and soft mount, devices 7-9) | rigid: filtered / smoothed "
+            "| not modelled | learned | learned / rigid, filtered | kept steps (of 300) | learned "
+            "mounting against the truth |", "| --- | --- | --- | --- | --- | --- | --- |"]
+    for joints in ("x,y,z", "x,y,x,y", "xyz,xyz"):
+        for kind in ("walking", "cyclic", "human"):
+            name = f"mounting_{joints.replace(',', '-')}_{kind}_soft8"
+            if not os.path.exists(os.path.join(HERE, "results", name + ".json")):
+                continue
+            rows = load(name)
+            ratio = [r["learned"]["filtered"] / r["rigid"]["filtered"] for r in rows]
+            cells = [f"{_mean(rows, k, 'filtered'):.3f} / {_mean(rows, k, 'smoothed'):.3f}"
+                     for k in ("rigid", "not_modelled", "learned")]
+            out.append(f"| `{joints}` {kind} | " + " | ".join(cells) + f" | {_span(ratio)} | "
+                       f"{_span([r['learned']['best_step'] for r in rows], '{}')} | "
+                       f"{_axes(rows)} |")
+    return "\n".join(out)
 
 
 def main() -> None:
@@ -63,12 +168,19 @@ def main() -> None:
     ap.add_argument("--fits", default="rigid,not_modelled,learned",
                     help="the fits to run; the others' figures are kept from the result file")
     ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--table", action="store_true",
+                    help="print docs/fitting.md's tables from the result files, run nothing")
     args = ap.parse_args()
+    if args.table:
+        print(tables())
+        return
     fits = args.fits.split(",")
     unknown = sorted(set(fits) - {"rigid", "not_modelled", "learned"})
     if unknown:
         ap.error(f"--fits: unknown fit {unknown[0]!r}; expected rigid, not_modelled, learned")
     name = f"mounting_{args.joints.replace(',', '-')}_{args.kind}"
+    if args.tilt != 10.0:
+        name += f"_tilt{args.tilt:g}"
     if args.soft:
         name += f"_soft{args.soft:g}"
     out_path = os.path.join(HERE, "results", name + ".json")
@@ -85,7 +197,9 @@ def main() -> None:
     for device in devices:
         rigid = sessions(args.joints, args.kind, device, duration, {})
         tilted = sessions(args.joints, args.kind, device, duration, worn)
-        truth = tilted[0][0].extra_meta["simulation"]["effects"].get("gyro_mount_deg")
+        truth = tilted[0][0].extra_meta["simulation"]["effects"].get(
+            "gyro_mount_deg", {n: [0.0, 0.0, 0.0] for n in range(kk.Robot.from_spec(
+                args.joints).n_links)})
         row = {"device": device}
         for k, data, learn in (("rigid", rigid, ()), ("not_modelled", tilted, ()),
                                ("learned", tilted, ("gyro_mounting",))):
@@ -95,9 +209,13 @@ def main() -> None:
             want = np.array(list(truth.values()))
             row["mounting_error_deg"] = np.round(np.linalg.norm(got - want, axis=1), 2).tolist()
             row["mounting_true_deg"] = np.round(np.linalg.norm(want, axis=1), 2).tolist()
-        elif truth:
-            for k in ("mounting_error_deg", "mounting_true_deg"):
-                row[k] = kept[device][k]
+            row["mounting_learned_deg"] = np.round(got, 2).tolist()
+            row["hinge_axis_error_deg"] = axis_errors(args.joints, got, want)
+        else:
+            for k in ("mounting_error_deg", "mounting_true_deg", "mounting_learned_deg",
+                      "hinge_axis_error_deg"):
+                if k in kept[device]:
+                    row[k] = kept[device][k]
         for k in fits:
             row[k].pop("result")
         rows.append(row)
