@@ -77,7 +77,9 @@ def test_parameter_gradient_equals_the_automatic_one(spec):
         return (jnp.nansum(est.angles**2) + 0.3 * jnp.nansum(est.angle_std)
                 + jnp.nansum(jnp.sin(est.bias)))
 
-    assert_close(eqx.filter_jit(eqx.filter_grad(through_lanes))(params), g0, 1e-12)
+    # Two compiled programs, the same arithmetic in another order: 2e-12 of the leaf's scale
+    # measured on xz,y,xyz once the monitor's noise floor changed the program around it.
+    assert_close(eqx.filter_jit(eqx.filter_grad(through_lanes))(params), g0, 1e-11)
 
 
 @pytest.mark.long  # the default run checks the parameters' gradient (x,y,x,y) above
