@@ -35,6 +35,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import kckf_jax as kk
+from kckf_jax._sessions._sim_mount import rotation_matrices  # internals: the simulator's own
 
 kk.enable_cpu_loops()  # XLA's CPU loops as one kernel each, before any computation
 
@@ -58,21 +59,11 @@ def held_out(val, params) -> dict:
     return out
 
 
-def rotations(v: np.ndarray) -> np.ndarray:
-    """Rodrigues: the rotations (``L 3 3``) of rotation vectors ``v`` (``L 3``, deg)."""
-    out = []
-    for x in np.asarray(v, np.float64) * np.pi / 180:
-        a = np.linalg.norm(x)
-        K = np.cross(np.eye(3), x / a if a > 0 else x)
-        out.append(np.eye(3) + np.sin(a) * K + (1 - np.cos(a)) * K @ K)
-    return np.stack(out)
-
-
 def axis_errors(joints: str, got: np.ndarray, want: np.ndarray) -> list:
     """Per one-axis joint, the angle (deg) between its axis as each of its two boards sees it
     under the learned (``got``) and the true (``want``) mountings (``L 3``, deg): ``R' e``.
     Joint ``i + 1`` joins boards ``i`` and ``i + 1``."""
-    Rg, Rw = rotations(got), rotations(want)
+    Rg, Rw = (rotation_matrices(np.radians(np.asarray(v, np.float64))) for v in (got, want))
     out = []
     for i, axes in enumerate(kk.Robot.from_spec(joints).joints):
         if len(axes) != 1:
@@ -106,6 +97,14 @@ def _span(xs, fmt="{:.2f}"):
     return fmt.format(lo) if lo == hi else f"{fmt.format(lo)}-{fmt.format(hi)}"
 
 
+def _learned(rows) -> str:
+    """Both tables' last three cells: learned over rigid (filtered, per device), the kept
+    steps, and the learned mounting against the truth."""
+    ratio = [r["learned"]["filtered"] / r["rigid"]["filtered"] for r in rows]
+    return (f"{_span(ratio)} | {_span([r['learned']['best_step'] for r in rows], '{}')} | "
+            f"{_axes(rows)}")
+
+
 def _axes(rows):
     """The learned hinge axes (or, without hinges, board rotations) within 1 deg of the truth,
     of all, and the largest error."""
@@ -132,13 +131,9 @@ def tables() -> str:
                         ("soft mount (8 Hz), no tilt", "mounting_x-y-z_walking_tilt0_soft8"),
                         ("tilt and soft mount", "mounting_x-y-z_walking_soft8")):
         rows = load(name)
-        ratio = [r["learned"]["filtered"] / r["rigid"]["filtered"] for r in rows]
-        out.append(
-            f"| {label} | {_mean(rows, 'not_modelled', 'filtered'):.3f} / "
-            f"{_mean(rows, 'not_modelled', 'smoothed'):.3f} | "
-            f"{_mean(rows, 'learned', 'filtered'):.3f} / {_mean(rows, 'learned', 'smoothed'):.3f}"
-            f" | {_span(ratio)} | {_span([r['learned']['best_step'] for r in rows], '{}')} | "
-            f"{_axes(rows)} |")
+        cells = [f"{_mean(rows, k, 'filtered'):.3f} / {_mean(rows, k, 'smoothed'):.3f}"
+                 for k in ("not_modelled", "learned")]
+        out.append(f"| {label} | " + " | ".join(cells) + f" | {_learned(rows)} |")
     out += ["", "| robot, motion (tilt and soft mount, devices 7-9) | rigid: filtered / smoothed "
             "| not modelled | learned | learned / rigid, filtered | kept steps (of 300) | learned "
             "mounting against the truth |", "| --- | --- | --- | --- | --- | --- | --- |"]
@@ -148,12 +143,9 @@ def tables() -> str:
             if not os.path.exists(os.path.join(HERE, "results", name + ".json")):
                 continue
             rows = load(name)
-            ratio = [r["learned"]["filtered"] / r["rigid"]["filtered"] for r in rows]
             cells = [f"{_mean(rows, k, 'filtered'):.3f} / {_mean(rows, k, 'smoothed'):.3f}"
                      for k in ("rigid", "not_modelled", "learned")]
-            out.append(f"| `{joints}` {kind} | " + " | ".join(cells) + f" | {_span(ratio)} | "
-                       f"{_span([r['learned']['best_step'] for r in rows], '{}')} | "
-                       f"{_axes(rows)} |")
+            out.append(f"| `{joints}` {kind} | " + " | ".join(cells) + f" | {_learned(rows)} |")
     return "\n".join(out)
 
 
