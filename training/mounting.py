@@ -2,11 +2,14 @@
 with and without the learned mounting (``gyro_mounting``).
 
     python training/mounting.py [--joints x,y,z] [--kind walking] [--devices 7,8,9]
-                                [--steps 300] [--tilt 10] [--soft 0] [--fits ...] [--quick]
-    python training/mounting.py --table
+                                [--steps 300] [--tilt 10] [--soft 0] [--train 2]
+                                [--also gyro_scale] [--fits ...] [--quick]
+    python training/mounting.py --table [--also gyro_scale]
 
-Per device (``--devices``: each its own tilts; two training sessions and one held-out of 40
-s, exact kinematics, 1 % dropped readings, ``kckf3d``) three fits on the training sessions:
+Per device (``--devices``: each its own tilts; ``--train`` training sessions and one held-out
+of 40 s, exact kinematics, 1 % dropped readings, ``kckf3d``) three fits on the training
+sessions, each learning the effects ``--also`` names (default ``gyro_scale``: without it the
+mounting stands in for the gyros' scale, docs/fitting.md):
 the same sessions with rigid, aligned boards (``rigid``); the tilted (and, with ``--soft HZ``,
 softly mounted) boards without the mounting (``not modelled``); and learning it (``learned``).
 Reports the held-out RMSE (deg, the fit's kept step), the held-out mean RMSE of the kept
@@ -15,8 +18,10 @@ against the steps run, each board's learned rotation against the simulator's (de
 the difference of the rotation vectors; zero is the truth with ``--tilt 0``), and each hinge's
 axis as each of its two boards sees it, learned against true (deg: what the filter reads of a
 board is its rate along the hinge axes beside it, so a board's turn about its one hinge is
-neither seen nor needed). Writes ``training/results/mounting_<joints>_<kind>[_tilt<deg>]
-[_soft<hz>].json`` (no ``_tilt`` part at the default 10 deg). ``--fits
+neither seen nor needed), and the validation curve (every 10 steps) with its last quarter's
+worst over its best. Writes ``training/results/mounting_<joints>_<kind>[_tilt<deg>]
+[_soft<hz>][_train<n>][_<also>].json`` (no ``_tilt`` part at the default 10 deg, no
+``_train`` part at 2). ``--fits
 learned`` runs only the named fits and keeps the others' figures from that file (the rigid and
 not-modelled fits learn no mounting, so a change to how it is learned leaves them as they
 were); ``--quick``: a smoke run (one device, 10 s sessions, 5 steps) that writes nothing;
@@ -42,12 +47,16 @@ kk.enable_cpu_loops()  # XLA's CPU loops as one kernel each, before any computat
 HERE = os.path.dirname(os.path.abspath(__file__))
 
 
-def sessions(joints: str, kind: str, device: int, duration: float, sim: dict) -> tuple:
+def sessions(joints: str, kind: str, device: int, duration: float, sim: dict,
+             n_train: int = 2) -> tuple:
+    """``n_train`` training sessions and one held-out of ``device``; the first two and the
+    held-out are the same whatever ``n_train``."""
     def one(seed):
         return kk.simulate(joints, kind, seed=seed, duration_s=duration, device_seed=device,
                            kinematics="exact", drop_prob=0.01, config=kk.SimConfig(**sim))
 
-    return [one(100 * device + 1), one(100 * device + 2)], [one(100 * device + 3)]
+    more = [one(100 * device + 10 + i) for i in range(n_train - 2)]
+    return [one(100 * device + 1), one(100 * device + 2)] + more, [one(100 * device + 3)]
 
 
 def held_out(val, params) -> dict:
@@ -76,6 +85,8 @@ def axis_errors(joints: str, got: np.ndarray, want: np.ndarray) -> list:
 
 
 def fitted(train, val, steps: int, learn: tuple) -> dict:
+    """One fit and its held-out scores. ``tail``: the last quarter's worst validation over the
+    best (1 where the fit still improves at its end; how far it wanders off otherwise)."""
     # One rate for every fit: the mounting's leaf (deg) takes steps 10 times it
     # (``_effects.STEP_SCALES``), the rest the default 0.03.
     cfg = kk.FitConfig(steps=steps, method="kckf3d", learn=learn, val_every=10,
@@ -83,8 +94,11 @@ def fitted(train, val, steps: int, learn: tuple) -> dict:
     t0 = time.time()
     res = kk.fit(train, val, cfg, dtype=jnp.float32)
     seconds = round(time.time() - t0, 1)
+    curve = [(h["step"], h["val_deg"]) for h in res.history if h.get("val_deg") is not None]
+    tail = max(v for k, v in curve if k > 0.75 * res.steps_done) / float(res.best_loss_deg)
     return {"val_rmse_deg": round(float(res.best_loss_deg), 3), **held_out(val, res.params),
-            "best_step": res.best_step, "steps": res.steps_done, "seconds": seconds,
+            "best_step": res.best_step, "steps": res.steps_done, "tail": round(tail, 3),
+            "val_curve": [[k, round(v, 4)] for k, v in curve], "seconds": seconds,
             "result": res}
 
 
@@ -98,11 +112,12 @@ def _span(xs, fmt="{:.2f}"):
 
 
 def _learned(rows) -> str:
-    """Both tables' last three cells: learned over rigid (filtered, per device), the kept
-    steps, and the learned mounting against the truth."""
+    """Both tables' last four cells: learned over rigid (filtered, per device), the kept
+    steps, the last quarter's worst validation over the best, and the learned mounting against
+    the truth."""
     ratio = [r["learned"]["filtered"] / r["rigid"]["filtered"] for r in rows]
     return (f"{_span(ratio)} | {_span([r['learned']['best_step'] for r in rows], '{}')} | "
-            f"{_axes(rows)}")
+            f"{_span([r['learned']['tail'] for r in rows])} | {_axes(rows)}")
 
 
 def _axes(rows):
@@ -114,38 +129,48 @@ def _axes(rows):
     return f"{sum(e <= 1.0 for e in errs)} of {len(errs)} {what}; worst {max(errs):.1f} deg"
 
 
-def tables() -> str:
-    """The two tables of docs/fitting.md ("Gyros as worn") from the result files."""
+def tables(also: str = "gyro_scale") -> str:
+    """The two tables of docs/fitting.md ("Gyros as worn") from the result files of the fits
+    that learned ``also`` besides the mounting."""
+    tag = "_" + "-".join(x for x in also.split(",") if x) if also else ""
+
+    def path(name):
+        return os.path.join(HERE, "results", name + tag + ".json")
+
     def load(name):
-        with open(os.path.join(HERE, "results", name + ".json")) as f:
+        with open(path(name)) as f:
             return json.load(f)["rows"]
+
+    def pair(rows, k):
+        return f"{_mean(rows, k, 'filtered'):.3f} / {_mean(rows, k, 'smoothed'):.3f}"
 
     out = ["| effect simulated (x,y,z walking, devices 7-9) | not modelled: filtered / smoothed "
            "| learned: filtered / smoothed | learned / rigid, filtered | kept steps (of 300) "
-           "| learned mounting against the truth |", "| --- | --- | --- | --- | --- | --- |"]
+           "| last quarter: worst / best validation | learned mounting against the truth |",
+           "| --- | --- | --- | --- | --- | --- | --- |"]
     base = load("mounting_x-y-z_walking")
-    out.append(f"| none (rigid, aligned boards) | {_mean(base, 'rigid', 'filtered'):.3f} / "
-               f"{_mean(base, 'rigid', 'smoothed'):.3f} | - | - | "
-               f"{_span([r['rigid']['best_step'] for r in base], '{}')} | - |")
+    out.append(f"| none (rigid, aligned boards) | {pair(base, 'rigid')} | - | - | "
+               f"{_span([r['rigid']['best_step'] for r in base], '{}')} | "
+               f"{_span([r['rigid']['tail'] for r in base])} | - |")
     for label, name in (("tilt 5-10 deg", "mounting_x-y-z_walking"),
                         ("soft mount (8 Hz), no tilt", "mounting_x-y-z_walking_tilt0_soft8"),
                         ("tilt and soft mount", "mounting_x-y-z_walking_soft8")):
         rows = load(name)
-        cells = [f"{_mean(rows, k, 'filtered'):.3f} / {_mean(rows, k, 'smoothed'):.3f}"
-                 for k in ("not_modelled", "learned")]
-        out.append(f"| {label} | " + " | ".join(cells) + f" | {_learned(rows)} |")
-    out += ["", "| robot, motion (tilt and soft mount, devices 7-9) | rigid: filtered / smoothed "
-            "| not modelled | learned | learned / rigid, filtered | kept steps (of 300) | learned "
-            "mounting against the truth |", "| --- | --- | --- | --- | --- | --- | --- |"]
+        out.append(f"| {label} | {pair(rows, 'not_modelled')} | {pair(rows, 'learned')} | "
+                   f"{_learned(rows)} |")
+    out += ["", "| robot, motion (tilt and soft mount, devices 7-9) | training sessions | rigid: "
+            "filtered / smoothed | not modelled | learned | learned / rigid, filtered | kept "
+            "steps (of 300) | last quarter: worst / best validation | learned mounting against "
+            "the truth |", "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for joints in ("x,y,z", "x,y,x,y", "xyz,xyz"):
         for kind in ("walking", "cyclic", "human"):
-            name = f"mounting_{joints.replace(',', '-')}_{kind}_soft8"
-            if not os.path.exists(os.path.join(HERE, "results", name + ".json")):
-                continue
-            rows = load(name)
-            cells = [f"{_mean(rows, k, 'filtered'):.3f} / {_mean(rows, k, 'smoothed'):.3f}"
-                     for k in ("rigid", "not_modelled", "learned")]
-            out.append(f"| `{joints}` {kind} | " + " | ".join(cells) + f" | {_learned(rows)} |")
+            for n, part in ((2, ""), (6, "_train6")):
+                name = f"mounting_{joints.replace(',', '-')}_{kind}_soft8{part}"
+                if not os.path.exists(path(name)):
+                    continue
+                rows = load(name)
+                cells = " | ".join(pair(rows, k) for k in ("rigid", "not_modelled", "learned"))
+                out.append(f"| `{joints}` {kind} | {n} | {cells} | {_learned(rows)} |")
     return "\n".join(out)
 
 
@@ -159,12 +184,15 @@ def main() -> None:
     ap.add_argument("--soft", type=float, default=0.0, help="SimConfig.soft_mount_hz")
     ap.add_argument("--fits", default="rigid,not_modelled,learned",
                     help="the fits to run; the others' figures are kept from the result file")
+    ap.add_argument("--also", default="gyro_scale",
+                    help="effects every fit learns besides the mounting ('' for none)")
+    ap.add_argument("--train", type=int, default=2, help="training sessions per device")
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--table", action="store_true",
                     help="print docs/fitting.md's tables from the result files, run nothing")
     args = ap.parse_args()
     if args.table:
-        print(tables())
+        print(tables(args.also))
         return
     fits = args.fits.split(",")
     unknown = sorted(set(fits) - {"rigid", "not_modelled", "learned"})
@@ -175,6 +203,11 @@ def main() -> None:
         name += f"_tilt{args.tilt:g}"
     if args.soft:
         name += f"_soft{args.soft:g}"
+    if args.train != 2:
+        name += f"_train{args.train}"
+    also = tuple(x for x in args.also.split(",") if x)
+    if also:
+        name += "_" + "-".join(also)
     out_path = os.path.join(HERE, "results", name + ".json")
     kept = {}
     if len(fits) < 3 and not args.quick:
@@ -187,14 +220,14 @@ def main() -> None:
     worn = {"gyro_mount_deg": args.tilt, "soft_mount_hz": args.soft}
     rows = []
     for device in devices:
-        rigid = sessions(args.joints, args.kind, device, duration, {})
-        tilted = sessions(args.joints, args.kind, device, duration, worn)
+        rigid = sessions(args.joints, args.kind, device, duration, {}, args.train)
+        tilted = sessions(args.joints, args.kind, device, duration, worn, args.train)
         truth = tilted[0][0].extra_meta["simulation"]["effects"].get(
             "gyro_mount_deg", {n: [0.0, 0.0, 0.0] for n in range(kk.Robot.from_spec(
                 args.joints).n_links)})
         row = {"device": device}
-        for k, data, learn in (("rigid", rigid, ()), ("not_modelled", tilted, ()),
-                               ("learned", tilted, ("gyro_mounting",))):
+        for k, data, learn in (("rigid", rigid, also), ("not_modelled", tilted, also),
+                               ("learned", tilted, ("gyro_mounting",) + also)):
             row[k] = fitted(*data, steps, learn) if k in fits else dict(kept[device][k])
         if truth and "learned" in fits:
             got = np.asarray(row["learned"]["result"].params.effects.mounting, np.float64)
@@ -215,6 +248,7 @@ def main() -> None:
     out = {"joints": args.joints, "kind": args.kind, "tilt_deg": args.tilt,
            "soft_hz": args.soft, "steps": steps, "method": "kckf3d",
            "learning_rate": "0.03, the mounting's leaf 10x (_effects.STEP_SCALES)",
+           "also_learned": list(also), "training_sessions": args.train,
            "fits_run": fits, "rows": rows}
     if not args.quick:
         with open(out_path, "w") as f:

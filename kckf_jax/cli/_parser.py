@@ -237,7 +237,8 @@ def build_parser(commands: Mapping[str, Callable], demo_steps: int) -> argparse.
             "gyro_scale": "each gyro channel's scale error",
             "play": "the joints' mechanical play",
             "curve": "Hall curves beyond Eq. 1",
-            "gyro_mounting": "each gyro board's rotation on its link"}) + "; docs/fitting.md"),
+            "gyro_mounting": "each gyro board's rotation on its link, learned with "
+                             "gyro_scale"}) + "; docs/fitting.md"),
         LEARNABLE)
     t.add_argument("--batch-size", type=int, help="trials per step (default all)")
     t.add_argument("--init", help="start from this parameter file instead of the paper's")
