@@ -107,8 +107,8 @@ def _mean(rows, fit, key):
 
 
 def _span(xs, fmt="{:.2f}"):
-    lo, hi = min(xs), max(xs)
-    return fmt.format(lo) if lo == hi else f"{fmt.format(lo)}-{fmt.format(hi)}"
+    lo, hi = fmt.format(min(xs)), fmt.format(max(xs))
+    return lo if lo == hi else f"{lo}-{hi}"
 
 
 def _learned(rows) -> str:
