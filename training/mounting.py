@@ -117,7 +117,14 @@ def _learned(rows) -> str:
     the truth."""
     ratio = [r["learned"]["filtered"] / r["rigid"]["filtered"] for r in rows]
     return (f"{_span(ratio)} | {_span([r['learned']['best_step'] for r in rows], '{}')} | "
-            f"{_span([r['learned']['tail'] for r in rows])} | {_axes(rows)}")
+            f"{_tail(rows, 'learned')} | {_axes(rows)}")
+
+
+def _tail(rows, fit):
+    """The last quarter's worst validation over the best, or ``-`` in a file from before it
+    was recorded."""
+    tails = [r[fit].get("tail") for r in rows]
+    return "-" if None in tails else _span(tails)
 
 
 def _axes(rows):
@@ -151,7 +158,7 @@ def tables(also: str = "gyro_scale") -> str:
     base = load("mounting_x-y-z_walking")
     out.append(f"| none (rigid, aligned boards) | {pair(base, 'rigid')} | - | - | "
                f"{_span([r['rigid']['best_step'] for r in base], '{}')} | "
-               f"{_span([r['rigid']['tail'] for r in base])} | - |")
+               f"{_tail(base, 'rigid')} | - |")
     for label, name in (("tilt 5-10 deg", "mounting_x-y-z_walking"),
                         ("soft mount (8 Hz), no tilt", "mounting_x-y-z_walking_tilt0_soft8"),
                         ("tilt and soft mount", "mounting_x-y-z_walking_soft8")):
