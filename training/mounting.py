@@ -136,16 +136,34 @@ def _axes(rows):
     return f"{sum(e <= 1.0 for e in errs)} of {len(errs)} {what}; worst {max(errs):.1f} deg"
 
 
+def effects(also: str) -> tuple:
+    """``--also``'s effects (``''``: none)."""
+    return tuple(x for x in also.split(",") if x)
+
+
+def result_path(joints: str, kind: str, tilt: float = 10.0, soft: float = 0.0,
+                train: int = 2, also: tuple = ()) -> str:
+    """The result file of one run (see the module's docstring for the name's parts)."""
+    name = f"mounting_{joints.replace(',', '-')}_{kind}"
+    if tilt != 10.0:
+        name += f"_tilt{tilt:g}"
+    if soft:
+        name += f"_soft{soft:g}"
+    if train != 2:
+        name += f"_train{train}"
+    if also:
+        name += "_" + "-".join(also)
+    return os.path.join(HERE, "results", name + ".json")
+
+
 def tables(also: str = "gyro_scale") -> str:
     """The two tables of docs/fitting.md ("Gyros as worn") from the result files of the fits
     that learned ``also`` besides the mounting."""
-    tag = "_" + "-".join(x for x in also.split(",") if x) if also else ""
+    def path(joints="x,y,z", kind="walking", **run):
+        return result_path(joints, kind, also=effects(also), **run)
 
-    def path(name):
-        return os.path.join(HERE, "results", name + tag + ".json")
-
-    def load(name):
-        with open(path(name)) as f:
+    def load(path):
+        with open(path) as f:
             return json.load(f)["rows"]
 
     def pair(rows, k):
@@ -155,14 +173,14 @@ def tables(also: str = "gyro_scale") -> str:
            "| learned: filtered / smoothed | learned / rigid, filtered | kept steps (of 300) "
            "| last quarter: worst / best validation | learned mounting against the truth |",
            "| --- | --- | --- | --- | --- | --- | --- |"]
-    base = load("mounting_x-y-z_walking")
+    base = load(path())
     out.append(f"| none (rigid, aligned boards) | {pair(base, 'rigid')} | - | - | "
                f"{_span([r['rigid']['best_step'] for r in base], '{}')} | "
                f"{_tail(base, 'rigid')} | - |")
-    for label, name in (("tilt 5-10 deg", "mounting_x-y-z_walking"),
-                        ("soft mount (8 Hz), no tilt", "mounting_x-y-z_walking_tilt0_soft8"),
-                        ("tilt and soft mount", "mounting_x-y-z_walking_soft8")):
-        rows = load(name)
+    for label, run in (("tilt 5-10 deg", {}),
+                       ("soft mount (8 Hz), no tilt", {"tilt": 0.0, "soft": 8.0}),
+                       ("tilt and soft mount", {"soft": 8.0})):
+        rows = load(path(**run))
         out.append(f"| {label} | {pair(rows, 'not_modelled')} | {pair(rows, 'learned')} | "
                    f"{_learned(rows)} |")
     out += ["", "| robot, motion (tilt and soft mount, devices 7-9) | training sessions | rigid: "
@@ -171,11 +189,11 @@ def tables(also: str = "gyro_scale") -> str:
             "the truth |", "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for joints in ("x,y,z", "x,y,x,y", "xyz,xyz"):
         for kind in ("walking", "cyclic", "human"):
-            for n, part in ((2, ""), (6, "_train6")):
-                name = f"mounting_{joints.replace(',', '-')}_{kind}_soft8{part}"
-                if not os.path.exists(path(name)):
+            for n in (2, 6):
+                file = path(joints, kind, soft=8.0, train=n)
+                if not os.path.exists(file):
                     continue
-                rows = load(name)
+                rows = load(file)
                 cells = " | ".join(pair(rows, k) for k in ("rigid", "not_modelled", "learned"))
                 out.append(f"| `{joints}` {kind} | {n} | {cells} | {_learned(rows)} |")
     return "\n".join(out)
@@ -205,17 +223,8 @@ def main() -> None:
     unknown = sorted(set(fits) - {"rigid", "not_modelled", "learned"})
     if unknown:
         ap.error(f"--fits: unknown fit {unknown[0]!r}; expected rigid, not_modelled, learned")
-    name = f"mounting_{args.joints.replace(',', '-')}_{args.kind}"
-    if args.tilt != 10.0:
-        name += f"_tilt{args.tilt:g}"
-    if args.soft:
-        name += f"_soft{args.soft:g}"
-    if args.train != 2:
-        name += f"_train{args.train}"
-    also = tuple(x for x in args.also.split(",") if x)
-    if also:
-        name += "_" + "-".join(also)
-    out_path = os.path.join(HERE, "results", name + ".json")
+    also = effects(args.also)
+    out_path = result_path(args.joints, args.kind, args.tilt, args.soft, args.train, also)
     kept = {}
     if len(fits) < 3 and not args.quick:
         with open(out_path) as f:
