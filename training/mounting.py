@@ -3,7 +3,7 @@ with and without the learned mounting (``gyro_mounting``).
 
     python training/mounting.py [--joints x,y,z] [--kind walking] [--devices 7,8,9]
                                 [--steps 300] [--tilt 10] [--soft 0] [--train 2]
-                                [--also gyro_scale] [--fits ...] [--quick]
+                                [--also gyro_scale] [--fits ...,truth] [--quick]
     python training/mounting.py --table [--also gyro_scale]
 
 Per device (``--devices``: each its own tilts; ``--train`` training sessions and one held-out
@@ -24,9 +24,13 @@ worst over its best. Writes ``training/results/mounting_<joints>_<kind>[_tilt<de
 ``_train`` part at 2). ``--fits
 learned`` runs only the named fits and keeps the others' figures from that file (the rigid and
 not-modelled fits learn no mounting, so a change to how it is learned leaves them as they
-were); ``--quick``: a smoke run (one device, 10 s sessions, 5 steps) that writes nothing;
-``--table``: docs/fitting.md's two tables (each effect alone and together on ``x,y,z``
-walking; tilt and soft mount on every robot and motion run) from the result files.
+were). ``--fits learned,truth`` adds a fit that learns everything else with the mounting kept
+at the simulator's, and scores the learned fit's parameters with the true mounting put in:
+their training RMSE says whether the data prefer the true axes to the learned ones.
+``--quick``: a smoke run (one device, 10 s sessions, 5 steps) that writes nothing;
+``--table``: docs/fitting.md's three tables (each effect alone and together on ``x,y,z``
+walking; tilt and soft mount on every robot and motion run; learned against the truth kept,
+where it was run) from the result files.
 """
 
 from __future__ import annotations
@@ -36,15 +40,21 @@ import json
 import os
 import time
 
+import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
 import kckf_jax as kk
+from kckf_jax._fitting._fit import initial_params  # internals: the fit's own start
 from kckf_jax._sessions._sim_mount import rotation_matrices  # internals: the simulator's own
 
 kk.enable_cpu_loops()  # XLA's CPU loops as one kernel each, before any computation
 
 HERE = os.path.dirname(os.path.abspath(__file__))
+#: The fits a run can make: ``truth`` learns as ``learned`` does with the mounting kept at the
+#: simulator's (what the data say of the learned axes: its training RMSE against the
+#: learned fit's); run by ``--fits``, not by default.
+FITS = ("rigid", "not_modelled", "learned", "truth")
 
 
 def sessions(joints: str, kind: str, device: int, duration: float, sim: dict,
@@ -84,19 +94,36 @@ def axis_errors(joints: str, got: np.ndarray, want: np.ndarray) -> list:
     return out
 
 
-def fitted(train, val, steps: int, learn: tuple) -> dict:
+def train_rmse(train, params) -> float:
+    """The training sessions' mean RMSE (deg, filtered) of ``params``."""
+    est = kk.filter_sessions(train, "kckf3d", params)
+    return round(kk.rmse_table(train, [e.angles for e in est])["mean_rmse_deg"], 4)
+
+
+def with_mounting(params, mounting):
+    """``params`` with the boards' rotations (``L 3``, deg) set to ``mounting``."""
+    return eqx.tree_at(lambda p: p.effects.mounting, params,
+                       jnp.asarray(mounting, params.effects.mounting.dtype))
+
+
+def fitted(train, val, steps: int, learn: tuple, mounting=None) -> dict:
     """One fit and its held-out scores. ``tail``: the last quarter's worst validation over the
-    best (1 where the fit still improves at its end; how far it wanders off otherwise)."""
+    best (1 where the fit still improves at its end; how far it wanders off otherwise).
+    ``mounting`` (``L 3``, deg): learning ``gyro_mounting``, start it there and keep it."""
     # One rate for every fit: the mounting's leaf (deg) takes steps 10 times it
     # (``_effects.STEP_SCALES``), the rest the default 0.03.
     cfg = kk.FitConfig(steps=steps, method="kckf3d", learn=learn, val_every=10,
-                       patience=steps)
+                       patience=steps,
+                       freeze=("effects.mounting",) if mounting is not None else ())
+    init = (None if mounting is None else
+            with_mounting(initial_params(train, cfg, jnp.float32), mounting))
     t0 = time.time()
-    res = kk.fit(train, val, cfg, dtype=jnp.float32)
+    res = kk.fit(train, val, cfg, init=init, dtype=jnp.float32)
     seconds = round(time.time() - t0, 1)
     curve = [(h["step"], h["val_deg"]) for h in res.history if h.get("val_deg") is not None]
     tail = max(v for k, v in curve if k > 0.75 * res.steps_done) / float(res.best_loss_deg)
     return {"val_rmse_deg": round(float(res.best_loss_deg), 3), **held_out(val, res.params),
+            "train_rmse_deg": train_rmse(train, res.params),
             "best_step": res.best_step, "steps": res.steps_done, "tail": round(tail, 3),
             "val_curve": [[k, round(v, 4)] for k, v in curve], "seconds": seconds,
             "result": res}
@@ -196,6 +223,27 @@ def tables(also: str = "gyro_scale") -> str:
                 rows = load(file)
                 cells = " | ".join(pair(rows, k) for k in ("rigid", "not_modelled", "learned"))
                 out.append(f"| `{joints}` {kind} | {n} | {cells} | {_learned(rows)} |")
+    out += ["", "| robot, motion (tilt and soft mount, devices 7-9) | training sessions | "
+            "learned hinge axes against the truth | training RMSE: learned / mounting kept at "
+            "the truth | the same, per device: truth / learned | held-out, filtered: learned / "
+            "truth | training RMSE, learned with the true mounting put in (not refitted) |",
+            "| --- | --- | --- | --- | --- | --- | --- |"]
+    for joints in ("x,y,z", "x,y,x,y", "xyz,xyz"):
+        for kind in ("walking", "cyclic", "human"):
+            for n in (2, 6):
+                file = path(joints, kind, soft=8.0, train=n)
+                rows = load(file) if os.path.exists(file) else []
+                if not rows or "truth" not in rows[0]:
+                    continue
+                tr = [r[k]["train_rmse_deg"] for r in rows for k in ("learned", "truth")]
+                ratio = [r["truth"]["train_rmse_deg"] / r["learned"]["train_rmse_deg"]
+                         for r in rows]
+                swap = sum(r["learned_true_mounting"]["train_rmse_deg"] for r in rows)
+                out.append(
+                    f"| `{joints}` {kind} | {n} | {_axes(rows)} | "
+                    f"{sum(tr[::2]) / len(rows):.3f} / {sum(tr[1::2]) / len(rows):.3f} | "
+                    f"{_span(ratio, '{:.3f}')} | {_mean(rows, 'learned', 'filtered'):.3f} / "
+                    f"{_mean(rows, 'truth', 'filtered'):.3f} | {swap / len(rows):.3f} |")
     return "\n".join(out)
 
 
@@ -208,7 +256,8 @@ def main() -> None:
     ap.add_argument("--tilt", type=float, default=10.0, help="SimConfig.gyro_mount_deg")
     ap.add_argument("--soft", type=float, default=0.0, help="SimConfig.soft_mount_hz")
     ap.add_argument("--fits", default="rigid,not_modelled,learned",
-                    help="the fits to run; the others' figures are kept from the result file")
+                    help="the fits to run (and truth: the mounting kept at the simulator's); "
+                    "the others' figures are kept from the result file")
     ap.add_argument("--also", default="gyro_scale",
                     help="effects every fit learns besides the mounting ('' for none)")
     ap.add_argument("--train", type=int, default=2, help="training sessions per device")
@@ -220,13 +269,13 @@ def main() -> None:
         print(tables(args.also))
         return
     fits = args.fits.split(",")
-    unknown = sorted(set(fits) - {"rigid", "not_modelled", "learned"})
+    unknown = sorted(set(fits) - set(FITS))
     if unknown:
-        ap.error(f"--fits: unknown fit {unknown[0]!r}; expected rigid, not_modelled, learned")
+        ap.error(f"--fits: unknown fit {unknown[0]!r}; expected some of {', '.join(FITS)}")
     also = effects(args.also)
     out_path = result_path(args.joints, args.kind, args.tilt, args.soft, args.train, also)
     kept = {}
-    if len(fits) < 3 and not args.quick:
+    if not set(FITS[:3]) <= set(fits) and not args.quick:
         with open(out_path) as f:
             kept = {r["device"]: r for r in json.load(f)["rows"]}
     devices = [int(x) for x in args.devices.split(",")]
@@ -242,9 +291,22 @@ def main() -> None:
             "gyro_mount_deg", {n: [0.0, 0.0, 0.0] for n in range(kk.Robot.from_spec(
                 args.joints).n_links)})
         row = {"device": device}
-        for k, data, learn in (("rigid", rigid, also), ("not_modelled", tilted, also),
-                               ("learned", tilted, ("gyro_mounting",) + also)):
-            row[k] = fitted(*data, steps, learn) if k in fits else dict(kept[device][k])
+        truth_rot = np.array(list(truth.values()))
+        for k, data, learn, mount in (
+                ("rigid", rigid, also, None), ("not_modelled", tilted, also, None),
+                ("learned", tilted, ("gyro_mounting",) + also, None),
+                ("truth", tilted, ("gyro_mounting",) + also, truth_rot)):
+            if k in fits:
+                row[k] = fitted(*data, steps, learn, mount)
+            elif k in kept.get(device, {}):
+                row[k] = dict(kept[device][k])
+        if "learned" in fits and "truth" in fits:
+            # The learned fit's parameters with the true mounting put in, not refitted.
+            swapped = with_mounting(row["learned"]["result"].params, truth_rot)
+            row["learned_true_mounting"] = {"train_rmse_deg": train_rmse(tilted[0], swapped),
+                                            **held_out(tilted[1], swapped)}
+        elif "learned_true_mounting" in kept.get(device, {}):
+            row["learned_true_mounting"] = kept[device]["learned_true_mounting"]
         if truth and "learned" in fits:
             got = np.asarray(row["learned"]["result"].params.effects.mounting, np.float64)
             want = np.array(list(truth.values()))
