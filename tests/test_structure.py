@@ -12,6 +12,9 @@ import kckf_jax
 
 PKG = os.path.dirname(kckf_jax.__file__)
 ROOT = os.path.dirname(PKG)
+#: The repository (this file's parent's parent): ``ROOT`` is site-packages where the package
+#: is installed, not linked, as CI installs it.
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
 def _modules() -> dict[str, str]:
@@ -103,7 +106,8 @@ BENCHMARK_INTERNALS = re.compile(
 def test_recipes_benchmarks_and_notebooks_use_the_public_api():
     pattern = re.compile(r"kckf_jax(\.filters)?\._[a-z]")
     for folder in ("training", "benchmarks", "notebooks"):
-        for dirpath, _, files in os.walk(os.path.join(ROOT, folder)):
+        assert os.path.isdir(os.path.join(REPO, folder)), folder  # never passed on nothing
+        for dirpath, _, files in os.walk(os.path.join(REPO, folder)):
             for f in files:
                 if f.endswith((".py", ".ipynb")):
                     text = Path(dirpath, f).read_text()

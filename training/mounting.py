@@ -45,8 +45,6 @@ import jax.numpy as jnp
 import numpy as np
 
 import kckf_jax as kk
-from kckf_jax._fitting._fit import initial_params  # internals: the fit's own start
-from kckf_jax._sessions._sim_mount import rotation_matrices  # internals: the simulator's own
 
 kk.enable_cpu_loops()  # XLA's CPU loops as one kernel each, before any computation
 
@@ -76,6 +74,17 @@ def held_out(val, params) -> dict:
         est = kk.filter_sessions(val, "kckf3d", params, smooth=smooth)
         out[name] = round(kk.rmse_table(val, [e.angles for e in est])["mean_rmse_deg"], 3)
     return out
+
+
+def rotation_matrices(v: np.ndarray) -> np.ndarray:
+    """The rotations (``... 3 3``) of rotation vectors ``v`` (``... 3``, rad), Rodrigues'
+    formula: the simulator's and the learned mounting's convention (a board reads ``R' w``)."""
+    angle = np.linalg.norm(v, axis=-1)[..., None, None]
+    k = v / np.maximum(angle[..., 0], 1e-300)
+    K = np.zeros(v.shape + (3,))
+    K[..., 0, 1], K[..., 0, 2], K[..., 1, 2] = -k[..., 2], k[..., 1], -k[..., 0]
+    K = K - np.swapaxes(K, -1, -2)
+    return np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * (K @ K)
 
 
 def axis_errors(joints: str, got: np.ndarray, want: np.ndarray) -> list:
@@ -116,7 +125,7 @@ def fitted(train, val, steps: int, learn: tuple, mounting=None) -> dict:
                        patience=steps,
                        freeze=("effects.mounting",) if mounting is not None else ())
     init = (None if mounting is None else
-            with_mounting(initial_params(train, cfg, jnp.float32), mounting))
+            with_mounting(kk.initial_params(train, cfg, jnp.float32), mounting))
     t0 = time.time()
     res = kk.fit(train, val, cfg, init=init, dtype=jnp.float32)
     seconds = round(time.time() - t0, 1)
