@@ -2,7 +2,7 @@
 default, on every path.
 
     python benchmarks/cpu_loops.py [--json] [--quick] [--rounds 2] [--cases a,b,...]
-                                   [--bounds BYTES,...]
+                                   [--bounds BYTES,...] [--ynn]
 
 Each setting runs in processes of its own (XLA reads its flags once per process), the
 settings alternating (off, on, off, on, ...: ``--rounds`` of each); every case reports the
@@ -11,7 +11,9 @@ rounds. "off" is ``KCKF_XLA_LOOPS=0`` (XLA's default: on jax 0.10 each loop iter
 kernel by kernel); "on" is ``kk.enable_cpu_loops()``, the call the command and the
 documented API make (``kk.cpu_loops()``); ``--bounds`` adds a setting per bound
 (``KCKF_XLA_LOOPS=<bytes>``: loops touching more per iteration stay kernel by kernel), as for
-the choice of the default (``--cases lanes_1024,lanes_4096 --bounds 1048576,16777216``).
+the choice of the default (``--cases lanes_1024,lanes_4096 --bounds 1048576,16777216``);
+``--ynn`` adds "ynn": the loops' bound set but XLA's library (YNNPACK) fusions left on, as
+the call left them before issue 49 (``XLA_FLAGS`` naming the bound, which the call keeps).
 Data: simulated bench sessions (x, y, x, y) as ``kckf simulate`` writes them (jittered
 stamps, 1 % of the readings missing), the ``voltage`` noise model of a fit's starting point,
 float32, except the regular hour (constant step, every reading, the ``angle`` noise model: the
@@ -41,6 +43,8 @@ CASES = ("fit_step", "gradient_64", "gradient_3", "lanes_64", "lanes_1024", "seq
 MORE = ("lanes_4096",)  # run only when named
 QUICK_SKIP = ("gradient_64", "hour_sequential")  # --quick: unless named
 QUICK_OFF = ("lanes_64", "sequential_64")  # --quick: these in "off" (and --bounds), the rest "on"
+#: ``--ynn``'s flags: the call's bound, preset (so the call keeps them, fusions and all).
+YNN_KEPT = "--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=1099511627776"
 
 
 def worker(cases: list[str], quick: bool) -> dict:
@@ -152,6 +156,8 @@ def main():
     ap.add_argument("--rounds", type=int, help="default 2 (--quick: 1)")
     ap.add_argument("--cases", help=f"default {','.join(CASES)}")
     ap.add_argument("--bounds", default="", help="more settings: bounds in bytes, comma-separated")
+    ap.add_argument("--ynn", action="store_true",
+                    help='one more setting, "ynn": the bound set, the YNNPACK fusions left on')
     ap.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.cases is None:
@@ -161,7 +167,8 @@ def main():
         print(json.dumps(worker(cases, args.quick)))
         return
     args.rounds = args.rounds or (1 if args.quick else 2)
-    settings = ["off", "on"] + [b for b in args.bounds.split(",") if b]
+    settings = (["off", "on"] + [b for b in args.bounds.split(",") if b]
+                + (["ynn"] if args.ynn else []))
     runs = {s: [] for s in settings}
     # --quick: each case in one setting only.
     of = {s: ",".join(c for c in cases if (c in QUICK_OFF) == (s != "on")) if args.quick
@@ -170,7 +177,9 @@ def main():
         for setting in settings:
             env = dict(os.environ)
             env.pop("KCKF_XLA_LOOPS", None)
-            if setting != "on":
+            if setting == "ynn":  # a preset bound: the call keeps XLA_FLAGS as they are
+                env["XLA_FLAGS"] = f"{env.get('XLA_FLAGS', '')} {YNN_KEPT}".strip()
+            elif setting != "on":
                 env["KCKF_XLA_LOOPS"] = "0" if setting == "off" else setting
             print(f"round {r + 1}, {setting}", file=sys.stderr, flush=True)
             cmd = [sys.executable, os.path.abspath(__file__), "--worker", "--cases", of[setting]]
@@ -194,6 +203,8 @@ def main():
                             "runs_s": [x["median_s"] for x in r], "path": r[0]["path"]}
         row["ratio_on_over_off"] = (round(row["on"]["median_s"] / row["off"]["median_s"], 3)
                                     if "on" in row and "off" in row else None)
+        if "ynn" in row and "on" in row:
+            row["ratio_on_over_ynn"] = round(row["on"]["median_s"] / row["ynn"]["median_s"], 3)
         table[case] = row
     doc = {"benchmark": "cpu_loops", "machine": machine(), "date": time.strftime("%Y-%m-%d"),
            "rounds": args.rounds, "quick": args.quick,

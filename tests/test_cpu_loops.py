@@ -38,12 +38,29 @@ def test_with_option_adds_to_the_flags_and_to_existing_extra_options():
     assert cl.preset_bytes("--xla_backend_extra_options=a=1") is None
 
 
+def test_library_fusions_are_turned_off_only_where_jaxlib_has_the_flag():
+    """An unknown flag aborts XLA, so the YNNPACK flag goes only to the releases known to have
+    it (the ones pyproject.toml allows), and never twice or over a user's own value."""
+    flag = cl.YNN_FLAG
+    assert cl.without_ynn("--x=1", (0, 10, 2)) == f"--x=1 {flag}=-reduce"
+    assert cl.without_ynn("", (0, 12, 0, 1)) == f"{flag}=-reduce"
+    for older_or_newer in [(0, 10, 1), (0, 9, 2), (0, 13), (1, 0, 0), None]:
+        assert cl.without_ynn("--x=1", older_or_newer) == "--x=1"
+    mine = f"--x=1 {flag}=reduce"
+    assert cl.without_ynn(mine, (0, 11, 0)) == mine
+    version = cl.jaxlib_version()
+    assert version is not None and version[:3] == tuple(
+        int(x) for x in jax.lib.__version__.split(".")[:3])
+
+
 def test_enable_reports_every_state_and_changes_only_what_it_says():
     env = {"XLA_FLAGS": "--xla_dump_to=/tmp/d"}
     state = cl.enable_cpu_loops(env)
     assert state.state == "on" and state.loop_bytes == cl.LOOP_BYTES
     assert cl.preset_bytes(env["XLA_FLAGS"]) == cl.LOOP_BYTES
     assert env["XLA_FLAGS"].startswith("--xla_dump_to=/tmp/d ")
+    assert env["XLA_FLAGS"].endswith(f" {cl.YNN_FLAG}=-reduce")  # this jaxlib has it
+    assert cl.YNN_FLAG in state.detail
 
     again = dict(env)  # a subprocess inherits the flags: kept as they are
     assert cl.enable_cpu_loops(again).state == "preset"
@@ -119,21 +136,26 @@ def _loops(compiled_text: str) -> tuple[int, int]:
     return whiles, hoisted
 
 
-@pytest.mark.parametrize("path", ["lanes", "sequential"])
+@pytest.mark.parametrize("method,path", [("kckf", "lanes"), ("kckf", "sequential"),
+                                         ("kckf3d", "lanes")])
 @pytest.mark.long
-def test_the_filters_loops_forward_and_reverse_are_each_one_kernel(path):
+def test_the_filters_loops_forward_and_reverse_are_each_one_kernel(method, path):
     """Under the setting (the suite's conftest makes the call), every while loop of the
-    fitting gradient is hoisted: a dot, scatter or custom call in a step would keep its loop
-    on the thunk runtime, 2-4x slower (benchmarks/README.md, cpu_loops.py)."""
+    fitting gradient is hoisted: a dot, scatter, custom call or library (YNNPACK) fusion in a
+    step would keep its loop on the thunk runtime, 2-4x slower (benchmarks/README.md,
+    cpu_loops.py; ``kckf3d``'s reverse pass has reductions XLA hands to YNNPACK unless the
+    setting turns that off)."""
     if not kk.cpu_loops().one_kernel:
         pytest.skip(f"loops are not one kernel here: {kk.cpu_loops().detail}")
-    robot = kk.Robot.from_spec("x,y,x,y")
+    robot = kk.Robot.from_spec("x,y,x,y" if method == "kckf" else "xyz,xyz")
+    # 16 lanes: on fewer XLA's cost model keeps the reductions out of YNNPACK anyway.
     trials = [kk.simulate(robot, "human", seed=s, duration_s=0.6, drop_prob=0.05)
-              for s in range(2)]
+              for s in range(2 if method == "kckf" else 16)]
     batch = kk.make_batch(trials, jnp.float32)
     params = kk.initial_params(trials, kk.FitConfig(), jnp.float32)
     diff, static = eqx.partition(params, eqx.is_array)
-    grad = jax.jit(jax.grad(lambda d: kk.loss_fn(eqx.combine(d, static), batch, path=path)))
+    grad = jax.jit(jax.grad(lambda d: kk.loss_fn(eqx.combine(d, static), batch, method,
+                                                 path=path)))
     whiles, hoisted = _loops(grad.lower(diff).compile().as_text())
     assert whiles >= 2 and hoisted == whiles
     assert np.all(np.isfinite(np.asarray(jax.tree_util.tree_leaves(grad(diff))[0])))

@@ -17,7 +17,17 @@ entry of the map ``xla_backend_extra_options``).
 What it gains is measured by ``python benchmarks/cpu_loops.py`` (benchmarks/README.md: on jax
 0.10.2 a fitting step, the lanes filter, the smoother and the sequential filter 2.2-3.8 times
 faster). jax 0.12's XLA compiles these loops as one kernel without being asked
-(``cpu_loops()`` measures it), and the call changes nothing there.
+(``cpu_loops()`` measures it), and the bound changes nothing there.
+
+The pass also leaves alone a loop holding a library fusion: XLA's CPU backend (jax 0.10 to
+0.12) hands some reductions of products (``sum(a[:, None] * b[None], axis=2)`` over a
+covariance on lanes, which the exact-rotation KCKF's reverse pass and the vmapped sequential
+step have) to YNNPACK as a custom fusion, and the loop around them then runs kernel by
+kernel. So the call also takes reductions out of those fusions (``YNN_FLAG=-reduce`` in
+``XLA_FLAGS``: XLA's own loops compute them; matrix products, as the steady path's chunks
+have, stay with YNNPACK, which does them faster), where the installed jaxlib is one known to
+have the flag (``YNN_JAXLIB``: an unknown flag or value aborts XLA); measured in
+benchmarks/README.md (issue 49).
 
 Who calls it: the ``kckf`` command, for itself; the README's API example, the notebooks,
 ``training/`` and ``benchmarks/`` show it. A library user who does not call it gets the same
@@ -47,6 +57,14 @@ ENV = "KCKF_XLA_LOOPS"
 XLA_DEFAULT_BYTES = 1024
 
 _EXTRA = "--xla_backend_extra_options="
+#: XLA's flag naming the library (YNNPACK) fusions it makes on the CPU, and the value the call
+#: gives it: XLA's default list without the reductions.
+YNN_FLAG = "--xla_cpu_experimental_ynn_fusion_type"
+YNN_VALUE = "-reduce"
+#: The jaxlib releases known to have ``YNN_FLAG`` and its fusion type ``reduce`` (checked:
+#: 0.10.2, 0.11.0, 0.12.0, 0.12.1, the versions ``pyproject.toml`` allows): from the first to
+#: before the second.
+YNN_JAXLIB = ((0, 10, 2), (0, 13))
 
 
 class CpuLoops(NamedTuple):
@@ -69,6 +87,29 @@ class CpuLoops(NamedTuple):
     loop_bytes: int
     detail: str
     one_kernel: bool | None = None
+
+
+def jaxlib_version() -> tuple[int, ...] | None:
+    """The installed jaxlib's release as integers (``(0, 12, 0, 1)``), or ``None``; read from
+    its metadata, without importing it."""
+    from importlib import metadata
+
+    try:
+        text = metadata.version("jaxlib")
+    except metadata.PackageNotFoundError:
+        return None
+    parts = re.match(r"\d+(\.\d+)*", text)
+    return tuple(int(x) for x in parts.group(0).split(".")) if parts else None
+
+
+def without_ynn(flags: str, version: tuple[int, ...] | None) -> str:
+    """``flags`` with reductions taken out of XLA's library fusions (``YNN_FLAG=YNN_VALUE``)
+    where jaxlib ``version`` has the flag and ``flags`` does not name it already; else
+    ``flags``."""
+    lo, hi = YNN_JAXLIB
+    if version is None or not lo <= version < hi or YNN_FLAG + "=" in flags:
+        return flags
+    return f"{flags} {YNN_FLAG}={YNN_VALUE}".strip()
 
 
 def with_option(flags: str, loop_bytes: int) -> str:
@@ -125,9 +166,11 @@ def enable_cpu_loops(environ: MutableMapping[str, str] | None = None) -> CpuLoop
         state = CpuLoops("preset", have, f"XLA_FLAGS sets {OPTION}={have}; kept")
     else:
         loop_bytes = int(asked) if asked else LOOP_BYTES
-        environ["XLA_FLAGS"] = with_option(flags, loop_bytes)
-        state = CpuLoops("on", loop_bytes, f"{OPTION}={loop_bytes} set in XLA_FLAGS: XLA "
-                                           "compiles each while loop as one kernel")
+        environ["XLA_FLAGS"] = without_ynn(with_option(flags, loop_bytes), jaxlib_version())
+        ynn = (f", and {YNN_FLAG}={YNN_VALUE} (no library reduction keeps a loop from it)"
+               if YNN_FLAG in environ["XLA_FLAGS"] else "")
+        state = CpuLoops("on", loop_bytes, f"{OPTION}={loop_bytes} set in XLA_FLAGS{ynn}: "
+                                           "XLA compiles each while loop as one kernel")
     if mine:
         _STATE = state
         _probe.cache_clear()
@@ -136,16 +179,20 @@ def enable_cpu_loops(environ: MutableMapping[str, str] | None = None) -> CpuLoop
 
 @functools.lru_cache(maxsize=1)
 def _probe() -> bool:
-    """Whether XLA compiles a loop touching 2 KiB per iteration (a filter step on lanes is
-    larger) as one kernel here: the compiled program's loop is a call XLA marks as hoisted."""
+    """Whether XLA compiles a filter-sized loop as one kernel here: a step on lanes (21 x 21
+    covariance entries of 64 trials) with a reduction of a product that XLA hands to YNNPACK
+    unless told not to (as the exact-rotation KCKF's reverse pass has); the compiled
+    program's loop is a call XLA marks as hoisted."""
     import jax
     import jax.numpy as jnp
 
     def body(c, r):
-        return jnp.tanh(c * 0.5 + r), c
+        P = jnp.tanh(c * 0.5 + r)
+        E = jnp.sum(P[:9, None] * P[None], axis=2)
+        return P + 0.01 * jnp.sum(E, axis=0)[None], c
 
     cpu = jax.devices("cpu")[0]
-    x = jax.device_put(jnp.zeros((4, 64, 8), jnp.float32), cpu)
+    x = jax.device_put(jnp.zeros((4, 21, 21, 64), jnp.float32), cpu)
     text = jax.jit(lambda x: jax.lax.scan(body, x[0], x)[1]).lower(x).compile().as_text()
     return 'xla_cpu_small_call="true"' in text
 
