@@ -61,6 +61,9 @@ def test_enable_reports_every_state_and_changes_only_what_it_says():
     assert env["XLA_FLAGS"].startswith("--xla_dump_to=/tmp/d ")
     assert env["XLA_FLAGS"].endswith(f" {cl.YNN_FLAG}=-reduce")  # this jaxlib has it
     assert cl.YNN_FLAG in state.detail
+    mine = {"XLA_FLAGS": f"{cl.YNN_FLAG}=reduce"}  # a user's own value: kept, not claimed
+    assert cl.YNN_FLAG not in cl.enable_cpu_loops(mine).detail
+    assert mine["XLA_FLAGS"].startswith(f"{cl.YNN_FLAG}=reduce ")
 
     again = dict(env)  # a subprocess inherits the flags: kept as they are
     assert cl.enable_cpu_loops(again).state == "preset"

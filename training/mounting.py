@@ -219,40 +219,33 @@ def tables(also: str = "gyro_scale") -> str:
         rows = load(path(**run))
         out.append(f"| {label} | {pair(rows, 'not_modelled')} | {pair(rows, 'learned')} | "
                    f"{_learned(rows)} |")
+    # Every robot and motion run with tilt and soft mount, each file read once for both tables.
+    runs = [(f"`{joints}` {kind} | {n}", load(file))
+            for joints in ("x,y,z", "x,y,x,y", "xyz,xyz")
+            for kind in ("walking", "cyclic", "human") for n in (2, 6)
+            if os.path.exists(file := path(joints, kind, soft=8.0, train=n))]
     out += ["", "| robot, motion (tilt and soft mount, devices 7-9) | training sessions | rigid: "
             "filtered / smoothed | not modelled | learned | learned / rigid, filtered | kept "
             "steps (of 300) | last quarter: worst / best validation | learned mounting against "
             "the truth |", "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
-    for joints in ("x,y,z", "x,y,x,y", "xyz,xyz"):
-        for kind in ("walking", "cyclic", "human"):
-            for n in (2, 6):
-                file = path(joints, kind, soft=8.0, train=n)
-                if not os.path.exists(file):
-                    continue
-                rows = load(file)
-                cells = " | ".join(pair(rows, k) for k in ("rigid", "not_modelled", "learned"))
-                out.append(f"| `{joints}` {kind} | {n} | {cells} | {_learned(rows)} |")
+    for label, rows in runs:
+        cells = " | ".join(pair(rows, k) for k in ("rigid", "not_modelled", "learned"))
+        out.append(f"| {label} | {cells} | {_learned(rows)} |")
     out += ["", "| robot, motion (tilt and soft mount, devices 7-9) | training sessions | "
             "learned hinge axes against the truth | training RMSE: learned / mounting kept at "
             "the truth | the same, per device: truth / learned | held-out, filtered: learned / "
             "truth | training RMSE, learned with the true mounting put in (not refitted) |",
             "| --- | --- | --- | --- | --- | --- | --- |"]
-    for joints in ("x,y,z", "x,y,x,y", "xyz,xyz"):
-        for kind in ("walking", "cyclic", "human"):
-            for n in (2, 6):
-                file = path(joints, kind, soft=8.0, train=n)
-                rows = load(file) if os.path.exists(file) else []
-                if not rows or "truth" not in rows[0]:
-                    continue
-                tr = [r[k]["train_rmse_deg"] for r in rows for k in ("learned", "truth")]
-                ratio = [r["truth"]["train_rmse_deg"] / r["learned"]["train_rmse_deg"]
-                         for r in rows]
-                swap = sum(r["learned_true_mounting"]["train_rmse_deg"] for r in rows)
-                out.append(
-                    f"| `{joints}` {kind} | {n} | {_axes(rows)} | "
-                    f"{sum(tr[::2]) / len(rows):.3f} / {sum(tr[1::2]) / len(rows):.3f} | "
-                    f"{_span(ratio, '{:.3f}')} | {_mean(rows, 'learned', 'filtered'):.3f} / "
-                    f"{_mean(rows, 'truth', 'filtered'):.3f} | {swap / len(rows):.3f} |")
+    for label, rows in runs:
+        if "truth" not in rows[0]:
+            continue
+        ratio = [r["truth"]["train_rmse_deg"] / r["learned"]["train_rmse_deg"] for r in rows]
+        swap = sum(r["learned_true_mounting"]["train_rmse_deg"] for r in rows) / len(rows)
+        out.append(
+            f"| {label} | {_axes(rows)} | {_mean(rows, 'learned', 'train_rmse_deg'):.3f} / "
+            f"{_mean(rows, 'truth', 'train_rmse_deg'):.3f} | {_span(ratio, '{:.3f}')} | "
+            f"{_mean(rows, 'learned', 'filtered'):.3f} / {_mean(rows, 'truth', 'filtered'):.3f} "
+            f"| {swap:.3f} |")
     return "\n".join(out)
 
 
@@ -309,23 +302,21 @@ def main() -> None:
                 row[k] = fitted(*data, steps, learn, mount)
             elif k in kept.get(device, {}):
                 row[k] = dict(kept[device][k])
-        if "learned" in fits and "truth" in fits:
-            # The learned fit's parameters with the true mounting put in, not refitted.
-            swapped = with_mounting(row["learned"]["result"].params, truth_rot)
+        if truth and "learned" in fits:  # what the learned fit's mounting gives
+            learned = row["learned"]["result"].params
+            got = np.asarray(learned.effects.mounting, np.float64)
+            row["mounting_error_deg"] = np.round(np.linalg.norm(got - truth_rot, axis=1),
+                                                 2).tolist()
+            row["mounting_true_deg"] = np.round(np.linalg.norm(truth_rot, axis=1), 2).tolist()
+            row["mounting_learned_deg"] = np.round(got, 2).tolist()
+            row["hinge_axis_error_deg"] = axis_errors(args.joints, got, truth_rot)
+            # Its parameters with the true mounting put in, not refitted.
+            swapped = with_mounting(learned, truth_rot)
             row["learned_true_mounting"] = {"train_rmse_deg": train_rmse(tilted[0], swapped),
                                             **held_out(tilted[1], swapped)}
-        elif "learned_true_mounting" in kept.get(device, {}):
-            row["learned_true_mounting"] = kept[device]["learned_true_mounting"]
-        if truth and "learned" in fits:
-            got = np.asarray(row["learned"]["result"].params.effects.mounting, np.float64)
-            want = np.array(list(truth.values()))
-            row["mounting_error_deg"] = np.round(np.linalg.norm(got - want, axis=1), 2).tolist()
-            row["mounting_true_deg"] = np.round(np.linalg.norm(want, axis=1), 2).tolist()
-            row["mounting_learned_deg"] = np.round(got, 2).tolist()
-            row["hinge_axis_error_deg"] = axis_errors(args.joints, got, want)
         else:
             for k in ("mounting_error_deg", "mounting_true_deg", "mounting_learned_deg",
-                      "hinge_axis_error_deg"):
+                      "hinge_axis_error_deg", "learned_true_mounting"):
                 if k in kept[device]:
                     row[k] = kept[device][k]
         for k in fits:

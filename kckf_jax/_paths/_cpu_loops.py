@@ -166,9 +166,10 @@ def enable_cpu_loops(environ: MutableMapping[str, str] | None = None) -> CpuLoop
         state = CpuLoops("preset", have, f"XLA_FLAGS sets {OPTION}={have}; kept")
     else:
         loop_bytes = int(asked) if asked else LOOP_BYTES
-        environ["XLA_FLAGS"] = without_ynn(with_option(flags, loop_bytes), jaxlib_version())
+        bound = with_option(flags, loop_bytes)
+        environ["XLA_FLAGS"] = without_ynn(bound, jaxlib_version())
         ynn = (f", and {YNN_FLAG}={YNN_VALUE} (no library reduction keeps a loop from it)"
-               if YNN_FLAG in environ["XLA_FLAGS"] else "")
+               if environ["XLA_FLAGS"] != bound else "")
         state = CpuLoops("on", loop_bytes, f"{OPTION}={loop_bytes} set in XLA_FLAGS{ynn}: "
                                            "XLA compiles each while loop as one kernel")
     if mine:
